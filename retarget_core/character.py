@@ -1,0 +1,78 @@
+"""Character: a skinned triangle mesh on a skeleton, in metres, Y up, facing +Z, feet on y = 0."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from retarget_core import kinematics
+from retarget_core.skeleton import Skeleton
+
+
+@dataclass
+class Material:
+    """The surface look carried from input to output: a base colour and an optional base-colour image."""
+
+    base_color: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
+    image_bytes: bytes | None = None
+    image_mime: str | None = None
+    metallic: float = 0.0
+    roughness: float = 0.8
+
+
+@dataclass
+class Character:
+    """A skinned body.
+
+    vertices: ``(V, 3)`` positions in the skeleton's rest pose (world space).
+    faces: ``(T, 3)`` vertex indices of triangles (int64).
+    skin_joints: ``(V, K)`` joint indices into ``skeleton`` (int64).
+    skin_weights: ``(V, K)`` weights, each row summing to 1.
+    uvs: ``(V, 2)`` texture coordinates or None.
+    """
+
+    name: str
+    skeleton: Skeleton
+    vertices: Tensor
+    faces: Tensor
+    skin_joints: Tensor
+    skin_weights: Tensor
+    uvs: Tensor | None = None
+    material: Material = field(default_factory=Material)
+
+    def __post_init__(self) -> None:
+        v = self.vertices.shape[0]
+        if self.vertices.shape != (v, 3) or self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise ValueError("vertices must be (V, 3) and faces (T, 3)")
+        if self.skin_joints.shape != self.skin_weights.shape or self.skin_joints.shape[0] != v:
+            raise ValueError("skin_joints and skin_weights must both be (V, K)")
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def height(self) -> float:
+        """Height of the rest pose in metres (vertical extent of the mesh)."""
+        return float(self.vertices[:, 1].max() - self.vertices[:, 1].min())
+
+    def dense_weights(self) -> Tensor:
+        """Skinning weights as a dense ``(V, J)`` matrix."""
+        return kinematics.dense_weights(self.skin_joints, self.skin_weights, self.skeleton.num_joints)
+
+    def pose_vertices(self, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
+        """Posed vertices ``(..., V, 3)`` for world joint transforms ``(..., J, 4)`` and ``(..., J, 3)``."""
+        rest_rot, rest_pos = self.skeleton.rest_global()
+        mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
+        return kinematics.linear_blend_skinning(self.vertices, self.dense_weights(), mats)
+
+    def vertex_normals(self) -> Tensor:
+        """Area-weighted unit vertex normals ``(V, 3)`` of the rest mesh."""
+        tri = self.vertices[self.faces]
+        n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+        out = torch.zeros_like(self.vertices)
+        for k in range(3):
+            out.index_add_(0, self.faces[:, k], n)
+        return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)

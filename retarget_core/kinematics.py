@@ -1,0 +1,86 @@
+"""Batched, differentiable forward kinematics and linear blend skinning (torch).
+
+Follows the glTF definition: a joint's world transform is its parent's world transform times its local
+``T * R`` (no scale; scale is baked into offsets on reading), and a skinned vertex is
+``sum_k w_k * world_k * inverse_bind_k * v`` with ``inverse_bind_k`` the inverse of the rest world transform.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from retarget_core import rotations as rot
+
+
+def forward_kinematics(parents: Sequence[int], local_rotations: Tensor, local_translations: Tensor) -> tuple[Tensor, Tensor]:
+    """World rotations ``(..., J, 4)`` and positions ``(..., J, 3)`` from local rotations ``(..., J, 4)`` and
+    local translations ``(..., J, 3)`` (roots: world). ``parents[j] < j``; ``-1`` marks a root."""
+    batch = torch.broadcast_shapes(local_rotations.shape[:-2], local_translations.shape[:-2])
+    local_rotations = local_rotations.expand(*batch, *local_rotations.shape[-2:])
+    local_translations = local_translations.expand(*batch, *local_translations.shape[-2:])
+    grot: list[Tensor] = []
+    gpos: list[Tensor] = []
+    for j, p in enumerate(parents):
+        r = local_rotations[..., j, :]
+        t = local_translations[..., j, :]
+        if p < 0:
+            grot.append(r)
+            gpos.append(t)
+        else:
+            grot.append(rot.mul(grot[p], r))
+            gpos.append(gpos[p] + rot.apply(grot[p], t))
+    return torch.stack(grot, dim=-2), torch.stack(gpos, dim=-2)
+
+
+def global_to_local(parents: Sequence[int], global_rotations: Tensor, global_positions: Tensor) -> tuple[Tensor, Tensor]:
+    """Local rotations ``(..., J, 4)`` and translations ``(..., J, 3)`` from world ones (inverse of FK)."""
+    local_r = global_rotations.clone()
+    local_t = global_positions.clone()
+    for j, p in enumerate(parents):
+        if p >= 0:
+            inv_p = rot.inv(global_rotations[..., p, :])
+            local_r[..., j, :] = rot.mul(inv_p, global_rotations[..., j, :])
+            local_t[..., j, :] = rot.apply(inv_p, global_positions[..., j, :] - global_positions[..., p, :])
+    return rot.normalize(local_r), local_t
+
+
+def rigid_matrices(global_rotations: Tensor, global_positions: Tensor) -> Tensor:
+    """4x4 matrices ``(..., J, 4, 4)`` from world rotations ``(..., J, 4)`` and positions ``(..., J, 3)``."""
+    m = torch.zeros(*global_rotations.shape[:-1], 4, 4, dtype=global_rotations.dtype)
+    m[..., :3, :3] = rot.to_matrix(global_rotations)
+    m[..., :3, 3] = global_positions
+    m[..., 3, 3] = 1.0
+    return m
+
+
+def skinning_matrices(rest_rotations: Tensor, rest_positions: Tensor, posed_rotations: Tensor, posed_positions: Tensor) -> Tensor:
+    """Per-joint 3x4 matrices ``(..., J, 3, 4)`` taking rest-pose world points to posed world points:
+    ``posed * rest^-1``. Rest ``(J, 4)``, ``(J, 3)``; posed ``(..., J, 4)``, ``(..., J, 3)``."""
+    delta_rot = rot.mul(posed_rotations, rot.inv(rest_rotations))
+    r = rot.to_matrix(delta_rot)
+    t = posed_positions - (r @ rest_positions.unsqueeze(-1)).squeeze(-1)
+    return torch.cat([r, t.unsqueeze(-1)], dim=-1)
+
+
+def dense_weights(joint_indices: Tensor, joint_weights: Tensor, num_joints: int) -> Tensor:
+    """Dense skinning weights ``(V, J)`` from per-vertex influences ``(V, K)`` indices and weights."""
+    w = torch.zeros(joint_indices.shape[0], num_joints, dtype=joint_weights.dtype)
+    w.scatter_add_(1, joint_indices.long(), joint_weights)
+    return w
+
+
+def linear_blend_skinning(rest_vertices: Tensor, weights: Tensor, matrices: Tensor, frame_chunk: int = 64) -> Tensor:
+    """Posed vertices ``(..., V, 3)`` from rest vertices ``(V, 3)``, dense weights ``(V, J)`` and per-joint
+    matrices ``(..., J, 3, 4)`` (from :func:`skinning_matrices`). Frames are processed in chunks to bound memory."""
+    batch = matrices.shape[:-3]
+    flat = matrices.reshape(-1, matrices.shape[-3], 12)
+    homo = torch.cat([rest_vertices, torch.ones_like(rest_vertices[:, :1])], dim=-1)  # (V, 4)
+    out = []
+    for start in range(0, flat.shape[0], frame_chunk):
+        blended = torch.matmul(weights, flat[start : start + frame_chunk])  # (C, V, 12)
+        blended = blended.reshape(blended.shape[0], -1, 3, 4)
+        out.append((blended @ homo.unsqueeze(-1)).squeeze(-1))
+    return torch.cat(out, dim=0).reshape(*batch, rest_vertices.shape[0], 3)

@@ -1,0 +1,113 @@
+"""Skeleton: joint names, parents and the rest pose as local transforms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from retarget_core import kinematics
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A joint hierarchy in metres, Y up.
+
+    names: ``(J,)`` unique joint names.
+    parents: ``(J,)`` parent index of each joint, ``-1`` for roots; every parent comes before its children.
+    rest_translations: ``(J, 3)`` local offset of each joint in its parent's frame (roots: world position).
+    rest_rotations: ``(J, 4)`` local rotation ``xyzw`` of each joint in its rest pose.
+    """
+
+    names: list[str]
+    parents: list[int]
+    rest_translations: Tensor
+    rest_rotations: Tensor
+    _index: dict[str, int] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if len(set(self.names)) != len(self.names):
+            raise ValueError("joint names must be unique")
+        if len(self.parents) != len(self.names):
+            raise ValueError("one parent per joint is needed")
+        for j, p in enumerate(self.parents):
+            if p >= j:
+                raise ValueError(f"joint {self.names[j]!r} comes before its parent")
+        object.__setattr__(self, "_index", {n: i for i, n in enumerate(self.names)})
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        """The index of joint ``name`` (KeyError if absent)."""
+        return self._index[name]
+
+    def find(self, name: str) -> int | None:
+        """The index of joint ``name`` or None."""
+        return self._index.get(name)
+
+    def children(self, joint: int) -> list[int]:
+        """Indices of the direct children of ``joint``."""
+        return [j for j, p in enumerate(self.parents) if p == joint]
+
+    def ancestors(self, joint: int) -> list[int]:
+        """Indices from ``joint``'s parent up to the root."""
+        out = []
+        p = self.parents[joint]
+        while p >= 0:
+            out.append(p)
+            p = self.parents[p]
+        return out
+
+    def rest_global(self) -> tuple[Tensor, Tensor]:
+        """World rotations ``(J, 4)`` and positions ``(J, 3)`` of the rest pose."""
+        return kinematics.forward_kinematics(self.parents, self.rest_rotations, self.rest_translations)
+
+    def subset(self, keep: list[int]) -> Skeleton:
+        """A skeleton of the joints ``keep`` (sorted, parent-closed after re-parenting to the nearest kept
+        ancestor); rest transforms are recomputed so world rest positions and rotations are unchanged."""
+        keep = sorted(keep)
+        new_index = {old: new for new, old in enumerate(keep)}
+        grot, gpos = self.rest_global()
+        parents = []
+        for j in keep:
+            p = self.parents[j]
+            while p >= 0 and p not in new_index:
+                p = self.parents[p]
+            parents.append(new_index[p] if p >= 0 else -1)
+        rot, trans = kinematics.global_to_local(parents, grot[keep], gpos[keep])
+        return Skeleton([self.names[j] for j in keep], parents, trans, rot)
+
+    def with_rest(self, rest_rotations: Tensor, rest_translations: Tensor | None = None) -> Skeleton:
+        """The same hierarchy with another rest pose."""
+        return Skeleton(
+            list(self.names),
+            list(self.parents),
+            self.rest_translations.clone() if rest_translations is None else rest_translations,
+            rest_rotations,
+        )
+
+    def scaled(self, factor: float) -> Skeleton:
+        """The same skeleton with all offsets multiplied by ``factor``."""
+        return Skeleton(list(self.names), list(self.parents), self.rest_translations * factor, self.rest_rotations.clone())
+
+
+def stack_names(skeleton: Skeleton) -> str:
+    """A readable tree of the skeleton, one joint per line, indented by depth."""
+    lines = []
+    for j, name in enumerate(skeleton.names):
+        lines.append("  " * len(skeleton.ancestors(j)) + name)
+    return "\n".join(lines)
+
+
+def zeros_like_rest(skeleton: Skeleton, frames: int) -> tuple[Tensor, Tensor]:
+    """Rest rotations and translations broadcast to ``(F, J, 4)`` and ``(F, J, 3)``."""
+    return (
+        skeleton.rest_rotations.unsqueeze(0).repeat(frames, 1, 1),
+        skeleton.rest_translations.unsqueeze(0).repeat(frames, 1, 1),
+    )
+
+
+__all__ = ["Skeleton", "stack_names", "zeros_like_rest"]
