@@ -15,7 +15,9 @@ from torch import Tensor
 from retarget_core import rotations as rot
 
 
-def forward_kinematics(parents: Sequence[int], local_rotations: Tensor, local_translations: Tensor) -> tuple[Tensor, Tensor]:
+def forward_kinematics(
+    parents: Sequence[int], local_rotations: Tensor, local_translations: Tensor
+) -> tuple[Tensor, Tensor]:
     """World rotations ``(..., J, 4)`` and positions ``(..., J, 3)`` from local rotations ``(..., J, 4)`` and
     local translations ``(..., J, 3)`` (roots: world). ``parents[j] < j``; ``-1`` marks a root."""
     batch = torch.broadcast_shapes(local_rotations.shape[:-2], local_translations.shape[:-2])
@@ -35,7 +37,9 @@ def forward_kinematics(parents: Sequence[int], local_rotations: Tensor, local_tr
     return torch.stack(grot, dim=-2), torch.stack(gpos, dim=-2)
 
 
-def global_to_local(parents: Sequence[int], global_rotations: Tensor, global_positions: Tensor) -> tuple[Tensor, Tensor]:
+def global_to_local(
+    parents: Sequence[int], global_rotations: Tensor, global_positions: Tensor
+) -> tuple[Tensor, Tensor]:
     """Local rotations ``(..., J, 4)`` and translations ``(..., J, 3)`` from world ones (inverse of FK)."""
     local_r = global_rotations.clone()
     local_t = global_positions.clone()
@@ -56,7 +60,9 @@ def rigid_matrices(global_rotations: Tensor, global_positions: Tensor) -> Tensor
     return m
 
 
-def skinning_matrices(rest_rotations: Tensor, rest_positions: Tensor, posed_rotations: Tensor, posed_positions: Tensor) -> Tensor:
+def skinning_matrices(
+    rest_rotations: Tensor, rest_positions: Tensor, posed_rotations: Tensor, posed_positions: Tensor
+) -> Tensor:
     """Per-joint 3x4 matrices ``(..., J, 3, 4)`` taking rest-pose world points to posed world points:
     ``posed * rest^-1``. Rest ``(J, 4)``, ``(J, 3)``; posed ``(..., J, 4)``, ``(..., J, 3)``."""
     delta_rot = rot.mul(posed_rotations, rot.inv(rest_rotations))

@@ -52,4 +52,10 @@ class Motion:
 
     def slice(self, start: int = 0, stop: int | None = None) -> Motion:
         """Frames ``start:stop`` as a new motion."""
-        return Motion(self.skeleton, self.fps, self.rotations[start:stop].clone(), self.translations[start:stop].clone(), self.name)
+        return Motion(
+            self.skeleton,
+            self.fps,
+            self.rotations[start:stop].clone(),
+            self.translations[start:stop].clone(),
+            self.name,
+        )

@@ -71,7 +71,11 @@ def between(u: Tensor, v: Tensor) -> Tensor:
     w = 1.0 + (u * v).sum(-1, keepdim=True)
     axis = torch.cross(u, v, dim=-1)
     # Fallback axis for opposite vectors: perpendicular to u.
-    helper = torch.where(u[..., :1].abs() < 0.9, torch.tensor([1.0, 0.0, 0.0], dtype=u.dtype), torch.tensor([0.0, 1.0, 0.0], dtype=u.dtype))
+    helper = torch.where(
+        u[..., :1].abs() < 0.9,
+        torch.tensor([1.0, 0.0, 0.0], dtype=u.dtype),
+        torch.tensor([0.0, 1.0, 0.0], dtype=u.dtype),
+    )
     perp = torch.cross(u, helper, dim=-1)
     opposite = w < 1e-6
     q = torch.where(opposite, torch.cat([perp, torch.zeros_like(w)], -1), torch.cat([axis, w], -1))
@@ -106,5 +110,15 @@ def yaw(q: Tensor) -> Tensor:
 
 
 def slerp(a: Tensor, b: Tensor, t: Tensor) -> Tensor:
-    """Spherical interpolation between unit quaternions ``a`` and ``b`` ``(..., 4)`` at ``t (...)``."""
-    return roma.unitquat_slerp(a, b, t.unsqueeze(-1) if t.dim() == a.dim() - 1 else t, shortest_arc=True)
+    """Element-wise spherical interpolation of unit quaternions ``a``, ``b`` ``(..., 4)`` at weights ``t (...)``
+    along the shorter arc."""
+    dot = (a * b).sum(-1, keepdim=True)
+    b = torch.where(dot < 0, -b, b)
+    dot = dot.abs().clamp(max=1.0)
+    t = t.unsqueeze(-1)
+    theta = torch.acos(dot)
+    sin = torch.sin(theta)
+    small = sin < 1e-6
+    wa = torch.where(small, 1 - t, torch.sin((1 - t) * theta) / sin.clamp_min(1e-6))
+    wb = torch.where(small, t, torch.sin(t * theta) / sin.clamp_min(1e-6))
+    return normalize(wa * a + wb * b)

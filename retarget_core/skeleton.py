@@ -91,7 +91,9 @@ class Skeleton:
 
     def scaled(self, factor: float) -> Skeleton:
         """The same skeleton with all offsets multiplied by ``factor``."""
-        return Skeleton(list(self.names), list(self.parents), self.rest_translations * factor, self.rest_rotations.clone())
+        return Skeleton(
+            list(self.names), list(self.parents), self.rest_translations * factor, self.rest_rotations.clone()
+        )
 
 
 def stack_names(skeleton: Skeleton) -> str:

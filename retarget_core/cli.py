@@ -1,0 +1,172 @@
+"""Command line: ``retarget run``, ``retarget inspect``, ``retarget bodies``, ``retarget eval``."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from retarget_core.errors import RetargetError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Put a human motion onto any skinned character.")
+console = Console(stderr=True)
+
+
+def _load_override(path: Path | None) -> dict[str, str] | None:
+    if path is None:
+        return None
+    from retarget_core.mapping import load_override
+
+    return load_override(path)
+
+
+@app.command()
+def run(
+    motion: Annotated[Path, typer.Argument(help="Motion file: BVH, glTF/GLB or FBX", exists=True, dir_okay=False)],
+    target: Annotated[str, typer.Argument(help="Target character file (GLB/glTF/FBX) or builtin:<preset>")],
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="Result file: .glb (animated character) or .bvh")
+    ] = Path("out.glb"),
+    before: Annotated[Path | None, typer.Option(help="Also write the copy baseline ('before') GLB here")] = None,
+    metrics: Annotated[Path | None, typer.Option(help="Also write the metrics JSON here")] = None,
+    source_character: Annotated[str | None, typer.Option(help="Source body file or builtin:<preset>")] = None,
+    clip: Annotated[str | None, typer.Option(help="Animation name or index in a multi-clip file")] = None,
+    fps: Annotated[float | None, typer.Option(help="Output frame rate (default: the source's)")] = None,
+    start: Annotated[int, typer.Option(help="First source frame")] = 0,
+    end: Annotated[int | None, typer.Option(help="End source frame (exclusive)")] = None,
+    in_place: Annotated[bool, typer.Option(help="Remove horizontal root motion")] = False,
+    map_override: Annotated[Path | None, typer.Option(help="JSON {canonical: joint} for the motion's skeleton")] = None,
+    target_map_override: Annotated[Path | None, typer.Option(help="JSON {canonical: joint} for the target")] = None,
+) -> None:
+    """Retarget MOTION onto TARGET and write an animated GLB (or BVH)."""
+    from retarget_core.jobs import JobInputs
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import StageClock, retarget
+
+    if output.suffix.lower() not in (".glb", ".bvh"):
+        _fail(f"output must end in .glb or .bvh, not {output.suffix!r}")
+    options = RetargetOptions(
+        fps=fps, frame_start=start, frame_end=end, clip=clip, in_place=in_place,
+        joint_map_override=_load_override(map_override), target_joint_map_override=_load_override(target_map_override),
+    )  # fmt: skip
+    inputs = JobInputs(motion, target if target.startswith("builtin:") else Path(target), source_character, options)
+    with _progress() as bar:
+        task = bar.add_task("starting", total=1.0)
+        clock = StageClock(progress=lambda stage, frac: bar.update(task, completed=frac, description=stage))
+        try:
+            result = retarget(inputs, clock)
+            with clock.stage("write"):
+                _write_outputs(result, output, before, metrics, clock.seconds)
+        except RetargetError as exc:
+            bar.stop()
+            _fail(str(exc))
+    for w in result.warnings:
+        console.print(f"[yellow]note:[/] {w}")
+    m = result.after
+    console.print(
+        f"wrote {output}: {m.num_frames} frames at {m.fps:g} fps ({m.duration:.2f} s) on "
+        f"{result.target.character.name} ({result.target.character.height:.2f} m)"
+    )
+
+
+def _write_outputs(result, output: Path, before: Path | None, metrics: Path | None, seconds: dict[str, float]) -> None:  # type: ignore[no-untyped-def]
+    from retarget_core.io.bvh import write_bvh
+    from retarget_core.io.gltf_write import write_glb
+    from retarget_core.metrics_summary import build_metrics
+
+    character = result.target.character
+    if output.suffix.lower() == ".bvh":
+        write_bvh(result.after, output)
+    else:
+        write_glb(character, result.after, output, clip_name=result.source.motion.name)
+    if before is not None:
+        write_glb(character, result.before, before, clip_name=result.source.motion.name)
+    if metrics is not None:
+        report = build_metrics(result)
+        report["stage_seconds"] = seconds
+        metrics.write_text(json.dumps(report, indent=1))
+
+
+@app.command()
+def inspect(
+    file: Annotated[Path, typer.Argument(help="A motion or character file", exists=True, dir_okay=False)],
+    kind: Annotated[str | None, typer.Option(help="'motion' or 'character' (default: guessed)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of tables")] = False,
+) -> None:
+    """Print joints, the mapping report, frames, fps and height of FILE."""
+    from retarget_core.inspect import inspect_file
+    from retarget_core.io.formats import detect_format
+
+    try:
+        chosen = kind or ("motion" if detect_format(file) == "bvh" else _guess_kind(file))
+        info = inspect_file(file, chosen)  # type: ignore[arg-type]
+    except RetargetError as exc:
+        _fail(str(exc))
+    if as_json:
+        print(json.dumps(info, indent=1))
+        return
+    _print_info(info)
+
+
+def _guess_kind(file: Path) -> str:
+    from retarget_core.io.fbx import read_fbx
+    from retarget_core.io.formats import detect_format
+    from retarget_core.io.gltf_read import read_gltf
+
+    contents = read_fbx(file) if detect_format(file) == "fbx" else read_gltf(file)
+    return "character" if contents.character is not None and not contents.motions else "motion"
+
+
+def _print_info(info: dict) -> None:  # type: ignore[type-arg]
+    out = Console()
+    out.print(f"[bold]{info['name']}[/] ({info['kind']}, {info['format']}), {info['joint_count']} joints")
+    if info["kind"] == "motion":
+        out.print(
+            f"frames {info['frames']}, fps {info['fps']:g}, duration {info['duration_s']:.2f} s, clips {info['clips']}"
+        )
+    else:
+        out.print(f"vertices {info['vertices']}, triangles {info['triangles']}, height {info['height_m']:.3f} m")
+    norm = info["normalization"]
+    out.print(f"units {norm['unit']} (x{norm['scale']:g}), up axis {norm['up_axis']}, rest pose: {norm['rest_pose']}")
+    table = Table(title="joint mapping")
+    for col in ("canonical", "joint", "confidence", "method"):
+        table.add_column(col)
+    for canonical, row in info["mapping"]["joints"].items():
+        table.add_row(canonical, row["joint"] or "[red]-[/]", f"{row['confidence']:.2f}", row["method"] or "")
+    out.print(table)
+    for w in info["warnings"]:
+        out.print(f"[yellow]note:[/] {w}")
+
+
+@app.command()
+def bodies() -> None:
+    """List the built-in bodies (use them as builtin:<name>)."""
+    from retarget_core.bodies.presets import PRESETS
+
+    for name, params in PRESETS.items():
+        print(f"builtin:{name}\t{params.model_dump_json()}")
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("{task.description:>10}"), BarColumn(), TimeElapsedColumn(), console=console, transient=True
+    )
+
+
+def _fail(message: str) -> None:
+    console.print(f"[red]error:[/] {message}")
+    raise typer.Exit(code=2)
+
+
+def main() -> None:
+    """Entry point of the ``retarget`` command."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.exit(130)

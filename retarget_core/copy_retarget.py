@@ -1,0 +1,165 @@
+"""The copy baseline: per-joint rotation transfer with rest alignment, root motion scaled by leg length.
+
+For every canonical joint ``c`` mapped on both skeletons, the target's world rotation follows the source's
+world rotation change since its rest pose, after aligning the two rest poses bone by bone:
+
+    Q_t(t) = Q_s(t) * Q_s_rest^-1 * A_c * Q_t_rest,   with   A_c * d_t = d_s
+
+where ``d_s``/``d_t`` are the rest directions of the bone (joint to its canonical child) of source and target.
+``A_c`` is the shortest arc between them (a T-pose source drives an A-pose target correctly); the hips and
+spine use full frames (bone direction plus the body's left axis) so their twist is aligned too. Joints of the
+target that are not canonical keep their rest local rotation. This is what a production rotation retargeter
+(Unreal IK Retargeter's FK chains, Mixamo) gives without IK: the "before" of every comparison.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from retarget_core import rotations as rot
+from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, JointMapping
+from retarget_core.character import Character
+from retarget_core.kinematics import forward_kinematics
+from retarget_core.motion import Motion
+from retarget_core.normalize import foot_clearance, foot_joint_indices, left_axis, leg_length
+from retarget_core.skeleton import Skeleton
+
+# Canonical joints whose alignment uses a full frame: primary = bone direction, secondary = body's left.
+FRAME_ALIGNED = ("Hips", "Spine", "Spine1", "Spine2", "Neck")
+# The bone direction of a canonical joint points to the first mapped joint of this list.
+BONE_CHILDREN: dict[str, tuple[str, ...]] = {
+    "Hips": ("Spine", "Spine1", "Spine2", "Neck"),
+    "Spine": ("Spine1", "Spine2", "Neck"),
+    "Spine1": ("Spine2", "Neck"),
+    "Spine2": ("Neck", "Head"),
+    "Neck": ("Head",),
+    "LeftShoulder": ("LeftArm",),
+    "LeftArm": ("LeftForeArm",),
+    "LeftForeArm": ("LeftHand",),
+    "RightShoulder": ("RightArm",),
+    "RightArm": ("RightForeArm",),
+    "RightForeArm": ("RightHand",),
+    "LeftUpLeg": ("LeftLeg",),
+    "LeftLeg": ("LeftFoot",),
+    "LeftFoot": ("LeftToeBase",),
+    "RightUpLeg": ("RightLeg",),
+    "RightLeg": ("RightFoot",),
+    "RightFoot": ("RightToeBase",),
+}
+CONTACT_FRAME_CLEARANCE_M = 0.03
+
+
+def _bone_direction(name: str, positions: Tensor, mapping: JointMapping) -> Tensor | None:
+    """Rest direction ``(3,)`` of canonical joint ``name`` toward its first mapped canonical child."""
+    for child in BONE_CHILDREN.get(name, ()):
+        if child in mapping.joints:
+            return positions[mapping.joints[child]] - positions[mapping.joints[name]]
+    return None
+
+
+def rest_alignment(
+    source: Skeleton, source_map: JointMapping, target: Skeleton, target_map: JointMapping
+) -> dict[str, Tensor]:
+    """Per canonical joint mapped on both sides, the world rotation ``A (4,)`` with ``A * d_target = d_source``.
+
+    Joints without a bone direction on both sides (hands, head, toes) inherit their canonical parent's."""
+    _, spos = source.rest_global()
+    _, tpos = target.rest_global()
+    s_left, t_left = left_axis(spos, source_map), left_axis(tpos, target_map)
+    align: dict[str, Tensor] = {}
+    for name in CANONICAL_JOINTS:
+        if name not in source_map.joints or name not in target_map.joints:
+            continue
+        ds, dt = _bone_direction(name, spos, source_map), _bone_direction(name, tpos, target_map)
+        if ds is not None and dt is not None:
+            if name in FRAME_ALIGNED:
+                fs = rot.from_frame(ds, s_left, primary_axis=1, secondary_axis=0)
+                ft = rot.from_frame(dt, t_left, primary_axis=1, secondary_axis=0)
+                align[name] = rot.normalize(rot.mul(fs, rot.inv(ft)))
+            else:
+                align[name] = rot.between(dt, ds)
+        else:
+            parent = CANONICAL_PARENT[name]
+            while parent is not None and parent not in align:
+                parent = CANONICAL_PARENT[parent]
+            align[name] = align[parent] if parent is not None else rot.identity()
+    return align
+
+
+def _hips_offset_from_root(target: Skeleton, hips: int, local_r: Tensor, local_t: Tensor) -> Tensor:
+    """World position ``(F, 3)`` of the hips joint when every root sits at the origin."""
+    zero_t = local_t.clone()
+    for j, p in enumerate(target.parents):
+        if p < 0:
+            zero_t[:, j] = 0.0
+    _, pos = forward_kinematics(target.parents, local_r, zero_t)
+    return pos[:, hips]
+
+
+def copy_retarget(
+    source: Motion,
+    source_map: JointMapping,
+    target: Skeleton,
+    target_map: JointMapping,
+    *,
+    in_place: bool = False,
+) -> Motion:
+    """The source motion performed by the target skeleton by rotation copying (see module doc).
+
+    Both inputs must be normalised (metres, Y up, rest facing +Z, ground at y = 0; the target's rest pose
+    standing on y = 0). Root motion is the source hips trajectory scaled by the ratio of leg lengths; the
+    height is then shifted so the feet touch the ground when the source's feet do.
+    Returns a motion on ``target`` with ``(F, J_target, 4)`` rotations and ``(F, J_target, 3)`` translations.
+    """
+    frames = source.num_frames
+    s_rot, s_pos = source.global_transforms()
+    s_rest_rot, _ = source.skeleton.rest_global()
+    t_rest_rot, t_rest_pos = target.rest_global()
+    align = rest_alignment(source.skeleton, source_map, target, target_map)
+
+    desired: dict[int, Tensor] = {}
+    for name, a in align.items():
+        sj, tj = source_map.joints[name], target_map.joints[name]
+        delta = rot.mul(s_rot[:, sj], rot.inv(s_rest_rot[sj]))
+        desired[tj] = rot.normalize(rot.mul(rot.mul(delta, a), t_rest_rot[tj]))
+
+    local_r = target.rest_rotations.unsqueeze(0).repeat(frames, 1, 1)
+    local_t = target.rest_translations.unsqueeze(0).repeat(frames, 1, 1)
+    world: list[Tensor] = []
+    for j, p in enumerate(target.parents):
+        parent_world = world[p] if p >= 0 else rot.identity(frames)
+        if j in desired:
+            world.append(desired[j])
+            local_r[:, j] = rot.normalize(rot.mul(rot.inv(parent_world), desired[j]))
+        else:
+            world.append(rot.mul(parent_world, local_r[:, j]))
+
+    # Root motion: source hips scaled by leg length ratio, placed through the target's root joint(s).
+    scale = leg_length(target, target_map) / max(leg_length(source.skeleton, source_map), 1e-6)
+    hips_s = s_pos[:, source_map.joints["Hips"]]
+    hips_t = hips_s * scale
+    if in_place:
+        hips_t = torch.stack([torch.zeros(frames), hips_t[:, 1], torch.zeros(frames)], dim=-1)
+    hips_index = target_map.joints["Hips"]
+    offset = _hips_offset_from_root(target, hips_index, local_r, local_t)
+    root = ([hips_index, *target.ancestors(hips_index)])[-1]
+    local_t[:, root] = hips_t - offset
+
+    # Height: feet on the ground wherever the source's feet are (the target's clearance matches the scaled source's).
+    _, t_pos = forward_kinematics(target.parents, local_r, local_t)
+    _, s_rest_pos = source.skeleton.rest_global()
+    s_clear = foot_clearance(s_pos, s_rest_pos, foot_joint_indices(source.skeleton, source_map)) * scale
+    t_clear = foot_clearance(t_pos, t_rest_pos, foot_joint_indices(target, target_map))
+    grounded = s_clear < CONTACT_FRAME_CLEARANCE_M
+    diff = (t_clear - s_clear)[grounded] if bool(grounded.any()) else (t_clear - s_clear)[:1]
+    shift = float(diff.median())
+    local_t[:, root, 1] -= shift
+    return Motion(target, source.fps, local_r, local_t, source.name)
+
+
+def retarget_to_character(
+    source: Motion, source_map: JointMapping, target: Character, target_map: JointMapping, *, in_place: bool = False
+) -> Motion:
+    """:func:`copy_retarget` onto a character's skeleton."""
+    return copy_retarget(source, source_map, target.skeleton, target_map, in_place=in_place)
