@@ -48,13 +48,17 @@ BONE_CHILDREN: dict[str, tuple[str, ...]] = {
     "RightFoot": ("RightToeBase",),
 }
 CONTACT_FRAME_CLEARANCE_M = 0.03
+MIN_BONE_LENGTH_M = 1e-3
 
 
 def _bone_direction(name: str, positions: Tensor, mapping: JointMapping) -> Tensor | None:
-    """Rest direction ``(3,)`` of canonical joint ``name`` toward its first mapped canonical child."""
+    """Rest direction ``(3,)`` of canonical joint ``name`` toward its first mapped canonical child that is not
+    at the same place (some rigs stack joints, e.g. CMU's Hips and LowerBack)."""
     for child in BONE_CHILDREN.get(name, ()):
         if child in mapping.joints:
-            return positions[mapping.joints[child]] - positions[mapping.joints[name]]
+            d = positions[mapping.joints[child]] - positions[mapping.joints[name]]
+            if float(d.norm()) > MIN_BONE_LENGTH_M:
+                return d
     return None
 
 
