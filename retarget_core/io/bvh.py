@@ -180,6 +180,7 @@ def _parse_hierarchy(lines: _Lines, max_joints: int) -> list[_Joint]:
             tok = lines.take("'{'")
             if tok != "{":
                 raise lines.error(f"expected '{{', found {tok[:40]!r}")
+        # End Sites get their final name (after duplicate parents are renamed) in _unique_names.
         name = joints[parent].name + END_SUFFIX if end_site else " ".join(name_tokens)
         joints.append(_Joint(name=name, parent=parent, line=lines.line, end_site=end_site))
         stack.append(len(joints) - 1)
@@ -337,19 +338,35 @@ def _diagnose_rows(text: str, channels: int, first_line: int, label: str) -> Inv
 
 
 def _unique_names(joints: list[_Joint], label: str) -> None:
+    """Rename repeated joint names ``name_2``, ``name_3``... (with a note), then name End Sites after their
+    (renamed) parents; an End Site name that collides with a joint is suffixed too."""
     seen: set[str] = set()
+
+    def unique(name: str) -> str:
+        k = 2
+        while f"{name}_{k}" in seen:
+            k += 1
+        return f"{name}_{k}"
+
     for joint in joints:
+        if joint.end_site:
+            continue
         if joint.name in seen:
-            k = 2
-            while f"{joint.name}_{k}" in seen:
-                k += 1
-            new = f"{joint.name}_{k}"
+            new = unique(joint.name)
             warnings.warn(
                 BvhNote(f"{label}: duplicate joint name {joint.name!r} (line {joint.line}) renamed {new!r}"),
                 stacklevel=3,
             )
             joint.name = new
         seen.add(joint.name)
+    for joint in joints:
+        if joint.end_site:
+            joint.name = joints[joint.parent].name + END_SUFFIX
+            if joint.name in seen:
+                new = unique(joint.name)
+                warnings.warn(BvhNote(f"{label}: End Site name {joint.name!r} is taken; named {new!r}"), stacklevel=3)
+                joint.name = new
+            seen.add(joint.name)
 
 
 def read_bvh(path: str | Path, *, name: str | None = None) -> Motion:
