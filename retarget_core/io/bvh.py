@@ -512,7 +512,7 @@ def _to_euler(convention: str, q: torch.Tensor) -> torch.Tensor:
 
 def _depth_first(parents: list[int]) -> list[int]:
     children: list[list[int]] = [[] for _ in parents]
-    roots = []
+    roots: list[int] = []
     for j, p in enumerate(parents):
         (roots if p < 0 else children[p]).append(j)
     order: list[int] = []
