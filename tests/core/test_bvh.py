@@ -24,7 +24,7 @@ def _motions_dir() -> Path | None:
 
     env = os.environ.get("RETARGET_SHARED_DATA")
     here = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-    for candidate in ([Path(env)] if env else []) + [here]:
+    for candidate in [here] + ([Path(env)] if env else []):  # ../shared/data first, then the variable
         if (candidate / "motions").is_dir():
             return candidate / "motions"
     return None

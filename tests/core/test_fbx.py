@@ -32,7 +32,7 @@ FBX_HEADER = b"Kaydara FBX Binary  \x00\x1a\x00"
 def _shared_data() -> Path | None:
     env = os.environ.get("RETARGET_SHARED_DATA")
     here = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-    for candidate in ([Path(env)] if env else []) + [here]:
+    for candidate in [here] + ([Path(env)] if env else []):  # ../shared/data first, then the variable
         if (candidate / "characters").is_dir():
             return candidate
     return None
