@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,9 +44,12 @@ class LoadedCharacter:
 def _read_any(path: Path, fps: float | None) -> tuple[FileFormat, Character | None, list[Motion], list[str]]:
     fmt = detect_format(path)
     if fmt == "bvh":
-        from retarget_core.io.bvh import read_bvh
+        from retarget_core.io.bvh import BvhNote, read_bvh
 
-        return fmt, None, [read_bvh(path)], []
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", BvhNote)
+            motion = read_bvh(path)
+        return fmt, None, [motion], [str(w.message) for w in caught if issubclass(w.category, BvhNote)]
     if fmt == "fbx":
         from retarget_core.io.fbx import read_fbx
 

@@ -57,7 +57,8 @@ def from_euler(convention: str, angles: Tensor, degrees: bool = True) -> Tensor:
 
 def to_euler(convention: str, q: Tensor, degrees: bool = True) -> Tensor:
     """Euler angles ``(..., D)`` from unit quaternions ``(..., 4)``."""
-    return torch.stack(roma.unitquat_to_euler(convention, q, degrees=degrees), dim=-1)
+    angles = roma.unitquat_to_euler(convention, q, degrees=degrees)
+    return angles if isinstance(angles, Tensor) else torch.stack(list(angles), dim=-1)
 
 
 def between(u: Tensor, v: Tensor) -> Tensor:
