@@ -35,9 +35,7 @@ def _node() -> str:
 def validate_glb(path: str | Path, timeout: float = 120.0) -> dict[str, Any]:
     """The validator's full JSON report on the glTF or GLB file at ``path``."""
     node = _node()
-    proc = subprocess.run(
-        [node, str(SCRIPT), str(path)], capture_output=True, text=True, timeout=timeout, check=False
-    )
+    proc = subprocess.run([node, str(SCRIPT), str(path)], capture_output=True, text=True, timeout=timeout, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"glTF validator failed on {path} (exit {proc.returncode}): {proc.stderr.strip()}")
     return json.loads(proc.stdout)
@@ -48,7 +46,9 @@ def format_issues(report: dict[str, Any]) -> str:
     names = {0: "ERROR", 1: "WARNING", 2: "INFO", 3: "HINT"}
     lines = []
     for m in report.get("issues", {}).get("messages", []):
-        lines.append(f"{names.get(m.get('severity'), m.get('severity'))} {m.get('code')} {m.get('pointer', '')}: {m.get('message')}")
+        lines.append(
+            f"{names.get(m.get('severity'), m.get('severity'))} {m.get('code')} {m.get('pointer', '')}: {m.get('message')}"
+        )
     return "\n".join(lines)
 
 

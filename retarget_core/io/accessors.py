@@ -188,7 +188,9 @@ class GltfData:
         return data, mime or uri_mime
 
     # ----- accessors --------------------------------------------------------------------------------------------
-    def _strided(self, view_index: Any, extra_offset: int, count: int, dtype: np.dtype, shape: tuple[int, int], where: str) -> np.ndarray:
+    def _strided(
+        self, view_index: Any, extra_offset: int, count: int, dtype: np.dtype, shape: tuple[int, int], where: str
+    ) -> np.ndarray:
         """A copy of ``count`` elements ``(count, cols, rows)`` read from a buffer view, bounds-checked."""
         cols, rows = shape
         comp = dtype.itemsize
@@ -204,7 +206,11 @@ class GltfData:
                 f"{where}: {count} elements from byteOffset {extra_offset} need {end} bytes but its bufferView has {length}"
             )
         arr = np.ndarray(
-            shape=(count, cols, rows), dtype=dtype, buffer=data, offset=offset + extra_offset, strides=(step, column_stride, comp)
+            shape=(count, cols, rows),
+            dtype=dtype,
+            buffer=data,
+            offset=offset + extra_offset,
+            strides=(step, column_stride, comp),
         )
         return arr.copy()
 
@@ -303,7 +309,9 @@ def check_extensions(doc: dict[str, Any], supported: set[str], label: str | None
         raise InvalidFileError("'extensionsRequired' must be an array", label)
     missing = [str(e) for e in required if e not in supported]
     if missing:
-        raise UnsupportedFileError(f"the file requires glTF extensions this reader does not support: {', '.join(missing)}", label)
+        raise UnsupportedFileError(
+            f"the file requires glTF extensions this reader does not support: {', '.join(missing)}", label
+        )
 
 
 def finite_number(value: Any) -> bool:

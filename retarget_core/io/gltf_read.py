@@ -38,7 +38,12 @@ GLB_MAGIC = b"glTF"
 CHUNK_JSON = 0x4E4F534A
 CHUNK_BIN = 0x004E4942
 # Required extensions that do not change what this reader needs (any component type is decoded anyway).
-SUPPORTED_EXTENSIONS = {"KHR_mesh_quantization", "KHR_materials_unlit", "KHR_texture_transform", "KHR_materials_emissive_strength"}
+SUPPORTED_EXTENSIONS = {
+    "KHR_mesh_quantization",
+    "KHR_materials_unlit",
+    "KHR_texture_transform",
+    "KHR_materials_emissive_strength",
+}
 COMMON_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 72.0, 90.0, 100.0, 120.0, 144.0, 240.0)
 MAX_INFLUENCES = 4
 _VERTEX_CHUNK = 262_144
@@ -77,7 +82,9 @@ def _parse_container(raw: bytes, label: str, notes: list[str]) -> tuple[Any, byt
                 raise InvalidFileError(f"truncated GLB: chunk header at byte {pos} runs past the end", label)
             clen, ctype = struct.unpack_from("<II", raw, pos)
             if pos + 8 + clen > length:
-                raise InvalidFileError(f"truncated GLB: chunk at byte {pos} of {clen} bytes runs past the end ({length})", label)
+                raise InvalidFileError(
+                    f"truncated GLB: chunk at byte {pos} of {clen} bytes runs past the end ({length})", label
+                )
             chunks.append((ctype, pos + 8, clen))
             pos += 8 + clen
         if not chunks or chunks[0][0] != CHUNK_JSON:
@@ -183,7 +190,9 @@ def _read_nodes(data: GltfData, notes: list[str]) -> _Nodes:
         kids = [data.index(c, n, f"nodes[{i}].children") for c in kids]
         for c in kids:
             if parents[c] != -1 or c == i:
-                raise data.fail(f"node {c} has more than one parent (or is its own child): the node graph is not a tree")
+                raise data.fail(
+                    f"node {c} has more than one parent (or is its own child): the node graph is not a tree"
+                )
             parents[c] = i
         children_of.append(kids)
         if "matrix" in node:
@@ -403,14 +412,18 @@ def _read_primitive(
     return pos, tri, attrs
 
 
-def _attribute(data: GltfData, attrs: dict[str, Any], name: str, count: int, where: str, types: tuple[str, ...]) -> np.ndarray:
+def _attribute(
+    data: GltfData, attrs: dict[str, Any], name: str, count: int, where: str, types: tuple[str, ...]
+) -> np.ndarray:
     values = data.accessor(attrs[name], f"{where}.attributes.{name}", allowed_types=types)
     if values.shape[0] != count:
         raise data.fail(f"{where}.attributes.{name} has {values.shape[0]} elements but POSITION has {count}")
     return values
 
 
-def _influences(data: GltfData, attrs: dict[str, Any], count: int, n_skin_joints: int, where: str, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _influences(
+    data: GltfData, attrs: dict[str, Any], count: int, n_skin_joints: int, where: str, notes: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
     """All ``JOINTS_n``/``WEIGHTS_n`` sets of a skinned primitive as ``(V, 4n)`` skin-joint indices and weights."""
     joints, weights = [], []
     k = 0
@@ -423,7 +436,9 @@ def _influences(data: GltfData, attrs: dict[str, Any], count: int, n_skin_joints
         j = j.astype(np.int64)
         used = w > 0
         if (j[used] >= n_skin_joints).any():
-            raise data.fail(f"{where}.attributes.JOINTS_{k} has the joint {int(j[used].max())}, but the skin has {n_skin_joints} joints")
+            raise data.fail(
+                f"{where}.attributes.JOINTS_{k} has the joint {int(j[used].max())}, but the skin has {n_skin_joints} joints"
+            )
         j[~used] = 0
         joints.append(j)
         weights.append(w)
@@ -436,18 +451,28 @@ def _influences(data: GltfData, attrs: dict[str, Any], count: int, n_skin_joints
         ww = np.clip(ww, 0.0, None)
     empty = ww.sum(1) <= 0
     if empty.any():
-        notes.append(f"{where}: {int(empty.sum())} vertices without any skinning weight bound to the skin's first joint")
+        notes.append(
+            f"{where}: {int(empty.sum())} vertices without any skinning weight bound to the skin's first joint"
+        )
         ww[empty, 0] = 1.0
         jj[empty, 0] = 0
     return jj, ww
 
 
 def _build_character(
-    data: GltfData, nodes: _Nodes, skins: list[_Skin], skeleton_nodes: list[int], skeleton: Skeleton, name: str, notes: list[str]
+    data: GltfData,
+    nodes: _Nodes,
+    skins: list[_Skin],
+    skeleton_nodes: list[int],
+    skeleton: Skeleton,
+    name: str,
+    notes: list[str],
 ) -> Character | None:
     settings = get_settings()
     node_to_joint = {node: j for j, node in enumerate(skeleton_nodes)}
-    rest_world = _world(nodes, _with_ancestors(nodes, set(range(len(nodes.parents)))), nodes.t[None], nodes.q[None], nodes.s[None])
+    rest_world = _world(
+        nodes, _with_ancestors(nodes, set(range(len(nodes.parents)))), nodes.t[None], nodes.q[None], nodes.s[None]
+    )
     parts = _MeshParts()
     any_skinned = False
     for n in nodes.order:
@@ -509,10 +534,17 @@ def _build_character(
         if any(u is None for u in parts.uvs):
             notes.append("some primitives have no TEXCOORD_0: their UVs were set to 0")
         uvs = torch.from_numpy(
-            np.concatenate([u if u is not None else np.zeros((v.shape[0], 2), np.float32) for u, v in zip(parts.uvs, parts.vertices, strict=True)])
+            np.concatenate(
+                [
+                    u if u is not None else np.zeros((v.shape[0], 2), np.float32)
+                    for u, v in zip(parts.uvs, parts.vertices, strict=True)
+                ]
+            )
         )
     if parts.num_vertices > settings.max_vertices:
-        raise LimitExceededError(f"{parts.num_vertices} vertices, over the limit of {settings.max_vertices}", data.label)
+        raise LimitExceededError(
+            f"{parts.num_vertices} vertices, over the limit of {settings.max_vertices}", data.label
+        )
     return Character(
         name=name,
         skeleton=skeleton,
@@ -534,8 +566,12 @@ def _read_material(data: GltfData, index: int | None, notes: list[str]) -> Mater
         raise data.fail(f"materials[{index}].pbrMetallicRoughness must be an object")
     where = f"materials[{index}].pbrMetallicRoughness"
     color = data.get_floats(pbr, "baseColorFactor", 4, where, [1.0, 1.0, 1.0, 1.0]).clip(0.0, 1.0)
-    metallic = float(data.get_floats({"v": [pbr.get("metallicFactor", 1.0)]}, "v", 1, f"{where}.metallicFactor", [1.0])[0])
-    rough = float(data.get_floats({"v": [pbr.get("roughnessFactor", 1.0)]}, "v", 1, f"{where}.roughnessFactor", [1.0])[0])
+    metallic = float(
+        data.get_floats({"v": [pbr.get("metallicFactor", 1.0)]}, "v", 1, f"{where}.metallicFactor", [1.0])[0]
+    )
+    rough = float(
+        data.get_floats({"v": [pbr.get("roughnessFactor", 1.0)]}, "v", 1, f"{where}.roughnessFactor", [1.0])[0]
+    )
     image, mime = None, None
     tex_info = pbr.get("baseColorTexture")
     if isinstance(tex_info, dict) and "index" in tex_info:
@@ -543,7 +579,13 @@ def _read_material(data: GltfData, index: int | None, notes: list[str]) -> Mater
         if "source" in tex:
             image, mime = data.image(tex["source"], f"textures[{tex_info['index']}].source")
             if mime is None:
-                mime = "image/png" if image[:8] == b"\x89PNG\r\n\x1a\n" else "image/jpeg" if image[:3] == b"\xff\xd8\xff" else None
+                mime = (
+                    "image/png"
+                    if image[:8] == b"\x89PNG\r\n\x1a\n"
+                    else "image/jpeg"
+                    if image[:3] == b"\xff\xd8\xff"
+                    else None
+                )
         else:
             notes.append(f"textures[{tex_info['index']}] has no core 'source' image: base colour texture dropped")
     return Material(
@@ -568,7 +610,8 @@ class _Channel:
 def _read_animation(data: GltfData, a: int, n_nodes: int, notes: list[str]) -> tuple[str, list[_Channel]]:
     anim = data.item("animations", a, f"animations[{a}]")
     where = f"animations[{a}]"
-    name = anim.get("name") if isinstance(anim.get("name"), str) and anim.get("name") else f"animation_{a}"
+    raw_name = anim.get("name")
+    name = raw_name if isinstance(raw_name, str) and raw_name else f"animation_{a}"
     samplers, channels = anim.get("samplers", []), anim.get("channels", [])
     if not isinstance(samplers, list) or not isinstance(channels, list):
         raise data.fail(f"{where}: samplers and channels must be arrays")
@@ -593,16 +636,22 @@ def _read_animation(data: GltfData, a: int, n_nodes: int, notes: list[str]) -> t
         interp = sampler.get("interpolation", "LINEAR")
         if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
             raise data.fail(f"{where}: interpolation {interp!r} is not LINEAR, STEP or CUBICSPLINE")
-        times = data.accessor(sampler.get("input"), f"{where} sampler input", allowed_types=("SCALAR",)).astype(np.float64)
+        times = data.accessor(sampler.get("input"), f"{where} sampler input", allowed_types=("SCALAR",)).astype(
+            np.float64
+        )
         require_finite(times, f"{name} keyframe times", data.label)
         if (np.diff(times) < 0).any():
             raise data.fail(f"{name}: keyframe times must increase")
         size = 4 if path == "rotation" else 3
-        values = data.accessor(sampler.get("output"), f"{where} sampler output", allowed_types=(f"VEC{size}",)).astype(np.float64)
+        values = data.accessor(sampler.get("output"), f"{where} sampler output", allowed_types=(f"VEC{size}",)).astype(
+            np.float64
+        )
         require_finite(values, f"{name} {path} keyframes", data.label)
         expected = len(times) * (3 if interp == "CUBICSPLINE" else 1)
         if values.shape[0] != expected:
-            raise data.fail(f"{name}: a {interp} {path} sampler has {values.shape[0]} values for {len(times)} keyframes")
+            raise data.fail(
+                f"{name}: a {interp} {path} sampler has {values.shape[0]} values for {len(times)} keyframes"
+            )
         if path == "rotation" and interp != "CUBICSPLINE":
             norms = np.linalg.norm(values, axis=1)
             if (norms < 1e-6).any():
@@ -631,7 +680,12 @@ def _sample(ch: _Channel, t: np.ndarray) -> np.ndarray:
     out_tan, in_tan = ch.values[2::3], ch.values[0::3]
     u2, u3 = u * u, u * u * u
     h = [2 * u3 - 3 * u2 + 1, (u3 - 2 * u2 + u) * td, -2 * u3 + 3 * u2, (u3 - u2) * td]
-    res = h[0][:, None] * vals[k] + h[1][:, None] * out_tan[k] + h[2][:, None] * vals[k + 1] + h[3][:, None] * in_tan[k + 1]
+    res = (
+        h[0][:, None] * vals[k]
+        + h[1][:, None] * out_tan[k]
+        + h[2][:, None] * vals[k + 1]
+        + h[3][:, None] * in_tan[k + 1]
+    )
     if ch.path == "rotation":
         res = res / np.linalg.norm(res, axis=1, keepdims=True).clip(min=1e-12)
     return res
@@ -649,8 +703,14 @@ def infer_fps(channels: list[_Channel], default: float) -> float:
 
 
 def _build_motion(
-    data: GltfData, nodes: _Nodes, skeleton: Skeleton, skeleton_nodes: list[int], name: str, channels: list[_Channel],
-    fps: float | None, notes: list[str],
+    data: GltfData,
+    nodes: _Nodes,
+    skeleton: Skeleton,
+    skeleton_nodes: list[int],
+    name: str,
+    channels: list[_Channel],
+    fps: float | None,
+    notes: list[str],
 ) -> Motion | None:
     settings = get_settings()
     needed = _with_ancestors(nodes, set(skeleton_nodes))
@@ -669,7 +729,8 @@ def _build_motion(
     frames_f = duration * rate
     if not math.isfinite(frames_f) or frames_f + 1 > settings.max_frames:
         raise LimitExceededError(
-            f"animation {name!r} lasts {duration:g} s: more than {settings.max_frames} frames at {rate:g} fps (max_frames)", data.label
+            f"animation {name!r} lasts {duration:g} s: more than {settings.max_frames} frames at {rate:g} fps (max_frames)",
+            data.label,
         )
     frames = int(math.floor(frames_f + 1e-3)) + 1
     t = np.arange(frames, dtype=np.float64) / rate
@@ -697,7 +758,9 @@ def load_gltf_data(path: str | Path, notes: list[str] | None = None) -> GltfData
     label = str(path)
     size = path.stat().st_size
     if size > settings.max_file_bytes:
-        raise LimitExceededError(f"the file has {size} bytes, over the limit of {settings.max_file_bytes} (max_file_bytes)", label)
+        raise LimitExceededError(
+            f"the file has {size} bytes, over the limit of {settings.max_file_bytes} (max_file_bytes)", label
+        )
     raw = path.read_bytes()
     doc, bin_chunk = _parse_container(raw, label, notes if notes is not None else [])
     if not isinstance(doc, dict):
@@ -726,7 +789,8 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
         joints = set().union(*(s.joints for s in skins))
         chosen = set(joints)
         for j in joints:
-            path_up, p = [], nodes.parents[j]
+            path_up: list[int] = []
+            p = nodes.parents[j]
             while p >= 0:
                 if p in joints:
                     chosen.update(path_up)
@@ -745,10 +809,14 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
                 chosen.add(n)
     skeleton_nodes = sorted(chosen, key=nodes.rank.__getitem__)
     if len(skeleton_nodes) > settings.max_joints:
-        raise LimitExceededError(f"{len(skeleton_nodes)} joints, over the limit of {settings.max_joints} (max_joints)", data.label)
+        raise LimitExceededError(
+            f"{len(skeleton_nodes)} joints, over the limit of {settings.max_joints} (max_joints)", data.label
+        )
     if not skeleton_nodes:
         has_mesh = any(isinstance(n, dict) and "mesh" in n for n in data.array("nodes"))
-        notes.append("the file has no skin" + (": its meshes are not a character" if has_mesh else "") + " and no animation")
+        notes.append(
+            "the file has no skin" + (": its meshes are not a character" if has_mesh else "") + " and no animation"
+        )
         return GltfContents(None, [], notes)
     skeleton = _make_skeleton(nodes, skeleton_nodes, notes)
 
@@ -758,7 +826,9 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
         if character is None:
             notes.append("the skins are used by no mesh: no character")
     elif data.array("meshes"):
-        notes.append(f"{path.name} has no skin: its meshes are not a character (a target character must be a skinned mesh)")
+        notes.append(
+            f"{path.name} has no skin: its meshes are not a character (a target character must be a skinned mesh)"
+        )
     motions = []
     for name, channels in animations:
         motion = _build_motion(data, nodes, skeleton, skeleton_nodes, name, channels, fps, notes)

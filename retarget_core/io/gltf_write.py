@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pygltflib
-import torch
 
 from retarget_core import rotations as rot
 from retarget_core.character import Character
@@ -36,15 +35,23 @@ class _Blob:
 
     def view(self, payload: bytes, target: int | None = None) -> int:
         self.data.extend(b"\0" * (-len(self.data) % 4))
-        self.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(self.data), byteLength=len(payload), target=target))
+        self.views.append(
+            pygltflib.BufferView(buffer=0, byteOffset=len(self.data), byteLength=len(payload), target=target)
+        )
         self.data.extend(payload)
         return len(self.views) - 1
 
-    def accessor(self, values: np.ndarray, component: int, kind: str, *, target: int | None = None, bounds: bool = False) -> int:
+    def accessor(
+        self, values: np.ndarray, component: int, kind: str, *, target: int | None = None, bounds: bool = False
+    ) -> int:
         dtype = {FLOAT: "<f4", UBYTE: "<u1", USHORT: "<u2", UINT: "<u4"}[component]
         arr = np.ascontiguousarray(values, dtype=dtype)
         acc = pygltflib.Accessor(
-            bufferView=self.view(arr.tobytes(), target), byteOffset=0, componentType=component, count=int(arr.shape[0]), type=kind
+            bufferView=self.view(arr.tobytes(), target),
+            byteOffset=0,
+            componentType=component,
+            count=int(arr.shape[0]),
+            type=kind,
         )
         if bounds:
             flat = arr.reshape(arr.shape[0], -1)
@@ -114,28 +121,40 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
 
     # Mesh.
     positions = character.vertices.detach().numpy().astype(np.float32)
-    joints, weights = limit_influences(character.skin_joints.detach().numpy(), character.skin_weights.detach().numpy(), MAX_INFLUENCES)
+    joints, weights = limit_influences(
+        character.skin_joints.detach().numpy(), character.skin_weights.detach().numpy(), MAX_INFLUENCES
+    )
     attributes = pygltflib.Attributes(
         POSITION=blob.accessor(positions, FLOAT, "VEC3", target=ARRAY_BUFFER, bounds=True),
         NORMAL=blob.accessor(_normals(character), FLOAT, "VEC3", target=ARRAY_BUFFER),
     )
     has_uv = character.uvs is not None
-    if has_uv:
+    if character.uvs is not None:
         attributes.TEXCOORD_0 = blob.accessor(character.uvs.detach().numpy(), FLOAT, "VEC2", target=ARRAY_BUFFER)
     attributes.JOINTS_0 = blob.accessor(joints, UBYTE if num_joints < 256 else USHORT, "VEC4", target=ARRAY_BUFFER)
     attributes.WEIGHTS_0 = blob.accessor(_weights_float32(weights), FLOAT, "VEC4", target=ARRAY_BUFFER)
     faces = character.faces.detach().numpy().reshape(-1)
-    indices = blob.accessor(faces, USHORT if character.num_vertices <= 65535 else UINT, "SCALAR", target=ELEMENT_ARRAY_BUFFER)
+    indices = blob.accessor(
+        faces, USHORT if character.num_vertices <= 65535 else UINT, "SCALAR", target=ELEMENT_ARRAY_BUFFER
+    )
 
     # Material (the base-colour image only when the mesh has UVs and the image is PNG or JPEG).
     mat = character.material
     pbr = pygltflib.PbrMetallicRoughness(
-        baseColorFactor=[float(c) for c in mat.base_color], metallicFactor=float(mat.metallic), roughnessFactor=float(mat.roughness)
+        baseColorFactor=[float(c) for c in mat.base_color],
+        metallicFactor=float(mat.metallic),
+        roughnessFactor=float(mat.roughness),
     )
     images, textures = [], []
     mime = mat.image_mime
     if mat.image_bytes and mime is None:
-        mime = "image/png" if mat.image_bytes[:8] == b"\x89PNG\r\n\x1a\n" else "image/jpeg" if mat.image_bytes[:3] == b"\xff\xd8\xff" else None
+        mime = (
+            "image/png"
+            if mat.image_bytes[:8] == b"\x89PNG\r\n\x1a\n"
+            else "image/jpeg"
+            if mat.image_bytes[:3] == b"\xff\xd8\xff"
+            else None
+        )
     if mat.image_bytes and has_uv and mime in ("image/png", "image/jpeg"):
         images.append(pygltflib.Image(bufferView=blob.view(mat.image_bytes), mimeType=mime))
         textures.append(pygltflib.Texture(source=0))
@@ -165,7 +184,9 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
     mesh_node = len(nodes)
     nodes.append(pygltflib.Node(name=character.name, mesh=0, skin=0))
     roots = [j for j, p in enumerate(sk.parents) if p < 0]
-    skin = pygltflib.Skin(name=f"{character.name}_skin", inverseBindMatrices=ibm_accessor, joints=list(range(num_joints)))
+    skin = pygltflib.Skin(
+        name=f"{character.name}_skin", inverseBindMatrices=ibm_accessor, joints=list(range(num_joints))
+    )
     if len(roots) == 1:
         skin.skeleton = roots[0]
 
@@ -178,7 +199,12 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
         scene=0,
         scenes=[pygltflib.Scene(name=character.name, nodes=[*roots, mesh_node])],
         nodes=nodes,
-        meshes=[pygltflib.Mesh(name=character.name, primitives=[pygltflib.Primitive(attributes=attributes, indices=indices, material=0, mode=4)])],
+        meshes=[
+            pygltflib.Mesh(
+                name=character.name,
+                primitives=[pygltflib.Primitive(attributes=attributes, indices=indices, material=0, mode=4)],
+            )
+        ],
         skins=[skin],
         materials=[material],
         textures=textures,
@@ -205,8 +231,16 @@ def _animation(character: Character, motion: Motion, blob: _Blob, clip_name: str
     samplers, channels = [], []
 
     def channel(node: int, path: str, values: np.ndarray, kind: str) -> None:
-        samplers.append(pygltflib.AnimationSampler(input=time_accessor, output=blob.accessor(values, FLOAT, kind), interpolation="LINEAR"))
-        channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)))
+        samplers.append(
+            pygltflib.AnimationSampler(
+                input=time_accessor, output=blob.accessor(values, FLOAT, kind), interpolation="LINEAR"
+            )
+        )
+        channels.append(
+            pygltflib.AnimationChannel(
+                sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)
+            )
+        )
 
     for j in range(sk.num_joints):
         channel(j, "rotation", _continuous(rots[:, j]), "VEC4")
