@@ -46,7 +46,7 @@ SUPPORTED_EXTENSIONS = {
 }
 COMMON_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 72.0, 90.0, 100.0, 120.0, 144.0, 240.0)
 MAX_INFLUENCES = 4
-_VERTEX_CHUNK = 262_144
+_VERTEX_CHUNK = 65_536
 
 
 @dataclass
@@ -89,7 +89,8 @@ def _parse_container(raw: bytes, label: str, notes: list[str]) -> tuple[Any, byt
             pos += 8 + clen
         if not chunks or chunks[0][0] != CHUNK_JSON:
             raise InvalidFileError("malformed GLB: the first chunk is not the JSON chunk", label)
-        text = raw[chunks[0][1] : chunks[0][1] + chunks[0][2]]
+        # Some exporters pad the JSON chunk with NUL instead of spaces: tolerate it.
+        text = raw[chunks[0][1] : chunks[0][1] + chunks[0][2]].rstrip(b"\x00 \t\r\n")
         bins = [c for c in chunks[1:] if c[0] == CHUNK_BIN]
         bin_chunk = raw[bins[0][1] : bins[0][1] + bins[0][2]] if bins else None
     else:
@@ -360,11 +361,12 @@ class _MeshParts:
 def _skin_rest(positions: np.ndarray, joints: np.ndarray, weights: np.ndarray, mats: np.ndarray) -> np.ndarray:
     """Positions ``(V, 3)`` skinned by per-joint matrices ``(J, 4, 4)`` with influences ``(V, K)`` (float64)."""
     out = np.empty_like(positions)
+    mats3 = mats[:, :3, :]
     total = weights.sum(1, keepdims=True)
     weights = weights / np.where(total > 0, total, 1.0)
     for start in range(0, positions.shape[0], _VERTEX_CHUNK):
         sl = slice(start, start + _VERTEX_CHUNK)
-        blend = np.einsum("vk,vkij->vij", weights[sl], mats[joints[sl]][:, :, :3, :])
+        blend = np.einsum("vk,vkij->vij", weights[sl], mats3[joints[sl]])
         out[sl] = np.einsum("vij,vj->vi", blend[:, :, :3], positions[sl]) + blend[:, :, 3]
     return out
 
@@ -722,8 +724,6 @@ def _build_motion(
         notes.append(f"{name}: no channel animates the skeleton; animation skipped")
         return None
     rate = float(fps) if fps is not None else infer_fps(used, settings.default_fps)
-    if not (math.isfinite(rate) and rate > 0):
-        raise ValueError(f"fps must be a positive number, not {fps!r}")
     duration = max(float(ch.times[-1]) for ch in used)
     duration = max(duration, 0.0)
     frames_f = duration * rate
@@ -778,6 +778,8 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
     all baked to world space in metres on one skeleton. ``fps``: sampling rate of the motions (default: inferred
     from the keyframes). Raises InvalidFileError (or a subclass) for malformed, hostile or over-limit files."""
     settings = get_settings()
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a positive number, not {fps!r}")
     path = Path(path)
     notes: list[str] = []
     data = load_gltf_data(path, notes)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pygltflib
+import torch
 
 from retarget_core import rotations as rot
 from retarget_core.character import Character
@@ -113,10 +114,30 @@ def _motion_tracks(character: Character, motion: Motion) -> tuple[np.ndarray, np
     return rots, trans
 
 
+def _check(character: Character, motion: Motion | None) -> None:
+    """ValueError for what would make an invalid file: non-finite values, faces or joints out of range."""
+    tensors = {"vertices": character.vertices, "skin_weights": character.skin_weights}
+    tensors.update({"uvs": character.uvs} if character.uvs is not None else {})
+    if motion is not None:
+        tensors.update({"motion rotations": motion.rotations, "motion translations": motion.translations})
+    for what, t in tensors.items():
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{character.name}: {what} contain NaN or infinite values")
+    v = character.num_vertices
+    if character.faces.numel() and (int(character.faces.min()) < 0 or int(character.faces.max()) >= v):
+        raise ValueError(f"{character.name}: faces refer to vertices outside 0..{v - 1}")
+    j = character.skin_joints
+    if j.numel() and (int(j.min()) < 0 or int(j.max()) >= character.skeleton.num_joints):
+        raise ValueError(f"{character.name}: skin joints outside 0..{character.skeleton.num_joints - 1}")
+    if (character.skin_weights.sum(1) <= 0).any() or (character.skin_weights < 0).any():
+        raise ValueError(f"{character.name}: skin weights must be non-negative with a positive sum per vertex")
+
+
 def build_gltf(character: Character, motion: Motion | None = None, *, clip_name: str = "retarget") -> pygltflib.GLTF2:
     """The glTF document (with its binary blob set) of ``character``, animated by ``motion`` when given."""
     sk = character.skeleton
     num_joints = sk.num_joints
+    _check(character, motion)
     blob = _Blob()
 
     # Mesh.

@@ -682,3 +682,46 @@ def test_limits_from_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     joints, _, _ = add_skinned_chain(b, ["Hips", "Spine", "Head"], [(0, 1, 0), (0, 0.4, 0), (0, 0.4, 0)])
     b.animation("long", [(joints[0], "translation", np.array([0.0, 1e6]), np.zeros((2, 3)), "LINEAR")])
     _raises_fast(b.save_glb(tmp_path / "long.glb"), "max_frames", LimitExceededError)
+
+
+def test_writer_rejects_bad_input_and_maps_motion_by_name(tmp_path: Path) -> None:
+    b = Builder()
+    add_skinned_chain(b, ["Hips", "Spine", "Head"], [(0, 1, 0), (0, 0.4, 0), (0, 0.4, 0)])
+    ch = read_gltf_character(b.save_glb(tmp_path / "chain.glb"))
+    # A motion on a subset skeleton (Hips, Head): Spine keeps its rest transform.
+    sub = ch.skeleton.subset([0, 2])
+    motion = _arm_motion(sub, 5, joint="Head")
+    out = tmp_path / "subset.glb"
+    write_glb(ch, motion, out)
+    gltf_validator.assert_valid_glb(out, max_warnings=0)
+    m = read_gltf(out).motions[0]
+    np.testing.assert_allclose(
+        m.rotations[:, 1].numpy(), ch.skeleton.rest_rotations[1][None].expand(5, 4).numpy(), atol=1e-6
+    )
+    np.testing.assert_allclose(m.rotations[:, 0].numpy(), motion.rotations[:, 0].numpy(), atol=1e-6)
+    other = Motion(
+        type(sub)(["Foo"], [-1], torch.zeros(1, 3), rot.identity(1)), 30.0, rot.identity(2, 1), torch.zeros(2, 1, 3)
+    )
+    with pytest.raises(ValueError, match="animates none of the joints"):
+        write_glb(ch, other, tmp_path / "x.glb")
+    ch.vertices[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="vertices contain NaN"):
+        write_glb(ch, None, tmp_path / "x.glb")
+    ch.vertices[0, 0] = 0.0
+    ch.faces[0, 0] = ch.num_vertices
+    with pytest.raises(ValueError, match="faces refer to vertices outside"):
+        write_glb(ch, None, tmp_path / "x.glb")
+
+
+def test_json_chunk_padded_with_nul_and_bad_fps(tmp_path: Path) -> None:
+    _, ok = _valid_glb(tmp_path)
+    raw = ok.read_bytes()
+    json_len = struct.unpack_from("<I", raw, 12)[0]
+    text = raw[20 : 20 + json_len].rstrip(b" ") + b"\0" * 8
+    text += b"\0" * (-len(text) % 4)
+    rest = raw[20 + json_len :]
+    padded = b"glTF" + struct.pack("<III", 2, 20 + len(text) + len(rest), len(text)) + b"JSON" + text + rest
+    (tmp_path / "nul.glb").write_bytes(padded)
+    assert read_gltf(tmp_path / "nul.glb").character.num_vertices == read_gltf(ok).character.num_vertices
+    with pytest.raises(ValueError, match="fps must be a positive number"):
+        read_gltf(ok, fps=0)
