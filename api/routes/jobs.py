@@ -1,0 +1,215 @@
+"""``/v1/jobs``: submit, list, get, cancel, retry, and download results."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query, Response
+from fastapi.responses import FileResponse
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from api.db import utcnow
+from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
+from api.joblife import cancel, queue_webhook, retry, send_job, send_webhook
+from api.models import ApiKey, Asset, Job, WebhookDelivery
+from api.schemas import ErrorOut, JobCreate, JobOut, JobStatus, Page
+from api.serialize import RESULT_FILES, job_out
+from api.settings import Settings
+from api.storage import Storage
+from retarget_core.options import RetargetOptions
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+
+def resolve_input(session: Session, key: ApiKey, field: str, kind: str, asset_id: str) -> tuple[Asset, str]:
+    """The asset named in a request field and the reference the worker reads; 422 when it is not usable."""
+    asset = session.get(Asset, asset_id)
+    if asset is None or asset.kind != kind or (asset.owner_id != key.id and asset.origin != "builtin"):
+        raise HTTPException(422, f"{field}: no {kind} with id {asset_id!r}")
+    if asset.origin == "builtin":
+        preset = (asset.params or {}).get("preset") or asset.id.removeprefix("builtin:")
+        return asset, f"builtin:{preset}"
+    if not asset.sha256 or not asset.format:
+        raise HTTPException(422, f"{field}: {kind} {asset_id!r} has no file")
+    return asset, Storage.blob_ref(asset.sha256, asset.format)
+
+
+def new_job(session: Session, key: ApiKey, settings: Settings, motion_id: str, target_id: str,
+            source_id: str | None, options: RetargetOptions, callback_url: Any, queue: str | None,
+            batch_id: str | None = None) -> Job:
+    """A queued job row (not yet sent) after checking its inputs."""
+    _, motion_ref = resolve_input(session, key, "motion_id", "motion", motion_id)
+    _, target_ref = resolve_input(session, key, "target_character_id", "character", target_id)
+    source_ref = None
+    if source_id:
+        _, source_ref = resolve_input(session, key, "source_character_id", "character", source_id)
+    job = Job(
+        owner_id=key.id, batch_id=batch_id, motion_id=motion_id, target_character_id=target_id,
+        source_character_id=source_id, motion_ref=motion_ref, target_ref=target_ref, source_ref=source_ref,
+        options=options.model_dump(mode="json"), queue=queue or settings.default_queue,
+        callback_url=str(callback_url) if callback_url else None, status="queued", sent_at=utcnow(),
+    )
+    session.add(job)
+    return job
+
+
+def dispatch(session: Session, celery: Any, jobs: list[Job]) -> None:
+    """Commit the rows, then send them; a job that could not be sent keeps sent_at empty for the reaper."""
+    session.commit()
+    for job in jobs:
+        if not send_job(celery, job.id, job.attempt, job.queue):
+            session.execute(update(Job).where(Job.id == job.id, Job.attempt == job.attempt).values(sent_at=None))
+    session.commit()
+
+
+def find_job(session: Session, key: ApiKey, job_id: str) -> Job:
+    job = session.get(Job, job_id)
+    if job is None or job.owner_id != key.id:
+        raise HTTPException(404, f"job {job_id!r} not found")
+    return job
+
+
+def latest_deliveries(session: Session, job_ids: list[str]) -> dict[str, WebhookDelivery]:
+    """The newest webhook delivery of each job."""
+    if not job_ids:
+        return {}
+    rows = session.scalars(
+        select(WebhookDelivery).where(WebhookDelivery.job_id.in_(job_ids)).order_by(WebhookDelivery.created_at)
+    ).all()
+    return {d.job_id: d for d in rows}
+
+
+def out(session: Session, job: Job) -> JobOut:
+    return job_out(job, latest_deliveries(session, [job.id]).get(job.id))
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=JobOut,
+    summary="Submit a job",
+    description="Queue one motion on one target character. Answers 202 at once with the job (Location header "
+    "and links.self point at it); poll it or pass a callback_url.",
+    responses={422: {"model": ErrorOut, "description": "An input does not exist or the options are invalid"}},
+)
+def create_job(body: JobCreate, response: Response, session: SessionDep, key: CurrentKey, settings: SettingsDep,
+               celery: CeleryDep) -> JobOut:
+    job = new_job(session, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
+                  body.options, body.callback_url, body.queue)
+    dispatch(session, celery, [job])
+    session.refresh(job)
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return out(session, job)
+
+
+@router.get("", response_model=Page[JobOut], summary="List jobs", description="Newest first.")
+def list_jobs(
+    session: SessionDep,
+    key: CurrentKey,
+    settings: SettingsDep,
+    status: Annotated[JobStatus | None, Query(description="Only jobs in this state")] = None,
+    batch_id: Annotated[str | None, Query(description="Only jobs of this batch")] = None,
+    limit: Annotated[int | None, Query(ge=1)] = None,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> Page[JobOut]:
+    limit = min(limit or settings.page_size_default, settings.page_size_max)
+    where = [Job.owner_id == key.id]
+    if status:
+        where.append(Job.status == status)
+    if batch_id:
+        where.append(Job.batch_id == batch_id)
+    total = session.scalar(select(func.count()).select_from(Job).where(*where)) or 0
+    rows = session.scalars(
+        select(Job).where(*where).order_by(Job.created_at.desc(), Job.id).limit(limit).offset(offset)
+    ).all()
+    deliveries = latest_deliveries(session, [j.id for j in rows])
+    return Page[JobOut](
+        items=[job_out(j, deliveries.get(j.id)) for j in rows], total=total, limit=limit, offset=offset,
+        next_offset=offset + limit if offset + limit < total else None,
+    )
+
+
+@router.get("/{job_id}", response_model=JobOut, summary="Get a job", responses={404: {"model": ErrorOut}})
+def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
+    return out(session, find_job(session, key, job_id))
+
+
+@router.post(
+    "/{job_id}/cancel",
+    response_model=JobOut,
+    summary="Cancel a job",
+    description="A queued job is canceled at once. A running job gets cancel_requested and stops at the next "
+    "stage boundary (its status turns canceled then). A finished job answers 409.",
+    responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
+)
+def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, celery: CeleryDep) -> JobOut:
+    job = find_job(session, key, job_id)
+    result = cancel(session, job)
+    if result == "finished":
+        raise HTTPException(409, f"job {job_id!r} has already finished ({job.status})")
+    delivery = queue_webhook(session, job) if result == "canceled" else None
+    session.commit()
+    send_webhook(celery, delivery)
+    return out(session, job)
+
+
+@router.post(
+    "/{job_id}/retry",
+    response_model=JobOut,
+    status_code=202,
+    summary="Run a failed or canceled job again",
+    responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
+)
+def retry_job(job_id: str, session: SessionDep, key: CurrentKey, celery: CeleryDep) -> JobOut:
+    job = find_job(session, key, job_id)
+    if not retry(session, job):
+        raise HTTPException(409, f"only failed or canceled jobs can be retried; job {job_id!r} is {job.status}")
+    dispatch(session, celery, [job])
+    return out(session, job)
+
+
+def _result(job_id: str, name: str, session: Session, key: ApiKey, storage: Storage) -> FileResponse:
+    job = find_job(session, key, job_id)
+    if job.status != "succeeded":
+        raise HTTPException(409, f"job {job_id!r} is {job.status}; results are there once it has succeeded")
+    rel = (job.outputs or {}).get(name)
+    if not rel:
+        raise HTTPException(404, f"job {job_id!r} has no {name}")
+    path = storage.resolve(rel)
+    if not path.is_file():
+        raise HTTPException(404, f"{name} of job {job_id!r} is missing from storage")
+    return FileResponse(path, media_type=RESULT_FILES[name][1], filename=f"{job_id}-{name}")
+
+
+_GLB = {200: {"content": {"model/gltf-binary": {}}, "description": "Binary glTF"},
+        404: {"model": ErrorOut}, 409: {"model": ErrorOut, "description": "The job has not succeeded"}}
+
+
+@router.get("/{job_id}/result.glb", response_class=FileResponse, responses=_GLB,
+            summary="The retargeted animation (after)")
+def result_glb(job_id: str, session: SessionDep, key: CurrentKey, storage: StorageDep) -> FileResponse:
+    return _result(job_id, "result.glb", session, key, storage)
+
+
+@router.get("/{job_id}/before.glb", response_class=FileResponse, responses=_GLB,
+            summary="The copy baseline (before)")
+def before_glb(job_id: str, session: SessionDep, key: CurrentKey, storage: StorageDep) -> FileResponse:
+    return _result(job_id, "before.glb", session, key, storage)
+
+
+@router.get("/{job_id}/source.glb", response_class=FileResponse, responses=_GLB,
+            summary="The source motion on its source body (when the pipeline wrote one)")
+def source_glb(job_id: str, session: SessionDep, key: CurrentKey, storage: StorageDep) -> FileResponse:
+    return _result(job_id, "source.glb", session, key, storage)
+
+
+@router.get(
+    "/{job_id}/metrics.json",
+    response_class=FileResponse,
+    summary="Metrics of before and after",
+    responses={200: {"content": {"application/json": {}}, "description": "The metrics JSON"},
+               404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
+)
+def metrics_json(job_id: str, session: SessionDep, key: CurrentKey, storage: StorageDep) -> FileResponse:
+    return _result(job_id, "metrics.json", session, key, storage)

@@ -1,0 +1,181 @@
+"""Worker side of uploads and bodies: parse a stored file, make a body from parameters, register built-in bodies.
+
+Answers to the API go into the ``worker_calls`` row the API is polling.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+
+from api.db import session_scope, utcnow
+from api.models import Asset, WorkerCall
+from api.settings import Settings
+from api.storage import Storage
+from worker.runner import json_safe
+
+log = logging.getLogger(__name__)
+
+
+def answer(settings: Settings, call_id: str, result: dict[str, Any] | None = None, error: str | None = None) -> None:
+    """Write the outcome of a worker call."""
+    with session_scope(settings.resolved_database_url) as s:
+        call = s.get(WorkerCall, call_id)
+        if call is None:
+            return
+        call.status = "error" if error is not None else "ok"
+        call.message = error
+        call.result = json_safe(result) if result is not None else None
+        call.finished_at = utcnow()
+
+
+def user_message(exc: BaseException, path: Path | None, label: str | None) -> str:
+    """The parser's message with the storage path replaced by the name the user gave the file."""
+    name = label or "the file"
+    problem = getattr(exc, "problem", None)
+    text = f"{name}: {problem}" if problem else str(exc)
+    if path is not None:
+        text = text.replace(str(path), name)
+    return text
+
+
+def inspect_blob(settings: Settings, ref: str, kind: str, label: str | None) -> dict[str, Any]:
+    """What inspect_file finds in a stored blob. Raises RetargetError subclasses for bad files."""
+    from retarget_core.inspect import inspect_file
+
+    path = Storage(settings.data_dir).blob_path(ref)
+    info = dict(inspect_file(path, kind))  # type: ignore[arg-type]
+    info.setdefault("format", ref.rsplit(".", 1)[1])
+    if str(info.get("name", "")).startswith(ref.split(".", 1)[0]):  # named after the blob file
+        info["name"] = Path(label).stem if label else None
+    return json_safe(info)  # type: ignore[no-any-return]
+
+
+def run_inspect(settings: Settings, call_id: str, ref: str, kind: str, label: str | None) -> None:
+    """The inspect task: answer ok with the info, or error with a message naming the problem."""
+    from retarget_core.errors import RetargetError
+
+    path = Storage(settings.data_dir).blob_path(ref)
+    try:
+        info = inspect_blob(settings, ref, kind, label)
+    except RetargetError as exc:
+        answer(settings, call_id, error=user_message(exc, path, label))
+    except Exception as exc:
+        log.exception("inspect of %s failed", ref)
+        answer(settings, call_id, error=user_message(
+            RuntimeError(f"the file could not be read ({type(exc).__name__}: {exc})"), path, label))
+    else:
+        answer(settings, call_id, {"info": info})
+
+
+def store_file(storage: Storage, path: Path, fmt: str) -> tuple[str, str, int]:
+    """Move a written file into the blob store; returns (sha256, ref, size)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    sha = digest.hexdigest()
+    ref = storage.blob_ref(sha, fmt)
+    size = path.stat().st_size
+    storage.commit_blob(path, ref)
+    return sha, ref, size
+
+
+def run_make_body(settings: Settings, call_id: str, params: dict[str, Any]) -> None:
+    """The make_body task: a MakeHuman body from shape parameters, stored as a GLB blob and inspected."""
+    from pydantic import ValidationError
+
+    from retarget_core.errors import RetargetError
+
+    try:
+        from retarget_core.bodies.makehuman import BodyParams, make_body
+        from retarget_core.io.gltf_write import write_glb
+    except ImportError as exc:
+        answer(settings, call_id, error=f"this worker cannot make bodies: {exc}")
+        return
+    try:
+        body_params = BodyParams.model_validate(params)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors())
+        answer(settings, call_id, error=f"invalid body parameters: {problems}")
+        return
+    storage = Storage(settings.data_dir)
+    tmp = storage.temp_path(".glb")
+    try:
+        character = make_body(body_params)
+        write_glb(character, None, tmp)
+        sha, ref, size = store_file(storage, tmp, "glb")
+        info = inspect_blob(settings, ref, "character", None)
+    except RetargetError as exc:
+        answer(settings, call_id, error=f"the body could not be made: {exc}")
+        return
+    except Exception as exc:
+        log.exception("make_body failed")
+        answer(settings, call_id, error=f"the body could not be made (internal error {type(exc).__name__}: {exc})")
+        return
+    finally:
+        tmp.unlink(missing_ok=True)
+    answer(settings, call_id, {"sha256": sha, "size_bytes": size, "info": info,
+                               "params": body_params.model_dump(mode="json"),
+                               "name": getattr(character, "name", None)})
+
+
+def _preset_names(presets: Any) -> list[str]:
+    names = []
+    for p in presets:
+        if isinstance(p, str):
+            names.append(p)
+        elif isinstance(p, dict):
+            names.append(str(p.get("name")))
+        else:
+            names.append(str(getattr(p, "name", p)))
+    return names
+
+
+def register_builtins(settings: Settings) -> list[str]:
+    """List the library's preset bodies as built-in characters (``builtin:<name>``), each with a GLB."""
+    from retarget_core.bodies.presets import list_presets, load_preset
+    from retarget_core.io.gltf_write import write_glb
+
+    storage = Storage(settings.data_dir)
+    url = settings.resolved_database_url
+    names = _preset_names(list_presets())
+    with session_scope(url) as s:
+        existing = {a.id: a for a in s.scalars(select(Asset).where(Asset.origin == "builtin"))}
+        for asset_id, asset in existing.items():
+            if asset_id.removeprefix("builtin:") not in names:
+                s.delete(asset)
+        for name in names:
+            if f"builtin:{name}" not in existing:
+                s.add(Asset(id=f"builtin:{name}", kind="character", owner_id=None, origin="builtin", name=name,
+                            params={"preset": name}, info={"preset": name}))
+    for name in names:
+        asset_id = f"builtin:{name}"
+        with session_scope(url) as s:
+            asset = s.get(Asset, asset_id)
+            if asset is None:
+                continue
+            if asset.sha256 and asset.format and storage.blob_path(storage.blob_ref(asset.sha256, asset.format)).is_file():
+                continue
+        tmp = storage.temp_path(".glb")
+        try:
+            write_glb(load_preset(name), None, tmp)
+            sha, ref, size = store_file(storage, tmp, "glb")
+            info = inspect_blob(settings, ref, "character", f"{name}.glb")
+        except Exception:
+            log.exception("built-in body %s could not be made", name)
+            continue
+        finally:
+            tmp.unlink(missing_ok=True)
+        info["preset"] = name
+        with session_scope(url) as s:
+            asset = s.get(Asset, asset_id)
+            if asset is not None:
+                asset.sha256, asset.format, asset.size_bytes = sha, "glb", size
+                asset.filename = f"{name}.glb"
+                asset.info = info
+    return names

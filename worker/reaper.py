@@ -1,0 +1,121 @@
+"""The reaper: finds jobs whose worker vanished and sends them again, from the database rows.
+
+Every worker process runs it periodically (worker/app.py), so it works the same with one embedded worker and
+with many; each change is a conditional UPDATE, so two reapers never both re-send a job. What it does:
+
+- a running job whose heartbeat is older than the timeout: canceled if a cancel was asked, failed if it ran
+  past the hard time limit or used up its attempts, otherwise queued again as the next attempt and re-sent;
+- a queued job whose message was never sent (broker down at submission) or was sent long ago: re-sent
+  (a duplicate message is harmless: a run only starts if the row is still queued at that attempt);
+- a webhook delivery still pending long after its planned attempt: re-sent;
+- old worker rows and worker-call rows: deleted.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from datetime import timedelta
+
+from celery import Celery
+from sqlalchemy import delete, or_, select, update
+
+from api.db import session_scope, utcnow
+from api.joblife import queue_webhook, send_job, send_webhook
+from api.models import Job, WebhookDelivery, WorkerCall, WorkerProcess
+from api.settings import Settings
+
+log = logging.getLogger(__name__)
+
+WEBHOOK_GRACE_SECONDS = 300.0
+NEVER_SENT_GRACE_SECONDS = 10.0
+CLEANUP_AFTER = timedelta(days=1)
+
+
+@dataclass
+class ReapReport:
+    requeued: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    canceled: list[str] = field(default_factory=list)
+    resent: list[str] = field(default_factory=list)
+    webhooks_resent: list[str] = field(default_factory=list)
+
+
+def reap(settings: Settings, celery: Celery) -> ReapReport:
+    """One pass of the reaper."""
+    url = settings.resolved_database_url
+    report = ReapReport()
+    now = utcnow()
+    stale = now - timedelta(seconds=settings.heartbeat_timeout_seconds)
+    to_send: list[tuple[str, int, str]] = []
+    deliveries: list[str | None] = []
+    webhook_sends: list[tuple[str, int]] = []
+    with session_scope(url) as s:
+        dead = s.scalars(select(Job).where(Job.status == "running", Job.heartbeat_at < stale)).all()
+        for job in dead:
+            mine = (Job.id == job.id, Job.attempt == job.attempt, Job.status == "running", Job.heartbeat_at < stale)
+            ran = (now - job.started_at).total_seconds() if job.started_at else 0.0
+            if job.cancel_requested:
+                values = {"status": "canceled", "message": "canceled by the client (its worker had stopped)"}
+                bucket = report.canceled
+            elif ran >= settings.job_hard_time_limit_seconds:
+                values = {"status": "failed", "error_kind": "timeout",
+                          "message": f"the job ran longer than the hard limit of {settings.job_hard_time_limit_seconds}"
+                          " s (setting RETARGET_API_JOB_HARD_TIME_LIMIT_SECONDS); try a shorter frame range"}
+                bucket = report.failed
+            elif job.attempt >= settings.max_job_attempts:
+                values = {"status": "failed", "error_kind": "worker_lost",
+                          "message": f"the worker running this job stopped {job.attempt} times (crash, out of "
+                          "memory or shut down); it was not started again"}
+                bucket = report.failed
+            else:
+                n = s.execute(update(Job).where(*mine).values(
+                    status="queued", attempt=job.attempt + 1, stage=None, progress=0.0, worker=None,
+                    started_at=None, heartbeat_at=None, sent_at=now, updated_at=now)).rowcount
+                if n:
+                    report.requeued.append(job.id)
+                    to_send.append((job.id, job.attempt + 1, job.queue))
+                    log.warning("job %s: worker %s silent since %s; queued again as attempt %s",
+                                job.id, job.worker, job.heartbeat_at, job.attempt + 1)
+                continue
+            n = s.execute(update(Job).where(*mine).values(finished_at=now, updated_at=now, **values)).rowcount
+            if n:
+                bucket.append(job.id)
+                s.refresh(job)
+                deliveries.append(queue_webhook(s, job))
+
+        resend_before = now - timedelta(seconds=settings.requeue_queued_after_seconds)
+        never_before = now - timedelta(seconds=NEVER_SENT_GRACE_SECONDS)
+        waiting = s.scalars(select(Job).where(
+            Job.status == "queued",
+            or_(Job.sent_at < resend_before, (Job.sent_at.is_(None)) & (Job.created_at < never_before)),
+        )).all()
+        for job in waiting:
+            n = s.execute(update(Job).where(Job.id == job.id, Job.attempt == job.attempt, Job.status == "queued")
+                          .values(sent_at=now)).rowcount
+            if n:
+                report.resent.append(job.id)
+                to_send.append((job.id, job.attempt, job.queue))
+
+        late = now - timedelta(seconds=WEBHOOK_GRACE_SECONDS)
+        stuck = s.scalars(select(WebhookDelivery).where(
+            WebhookDelivery.status == "pending",
+            or_(WebhookDelivery.next_attempt_at < late,
+                WebhookDelivery.next_attempt_at.is_(None) & (WebhookDelivery.created_at < late)),
+        )).all()
+        for d in stuck:
+            d.next_attempt_at = now
+            report.webhooks_resent.append(d.id)
+            webhook_sends.append((d.id, d.attempts + 1))
+
+        old = now - CLEANUP_AFTER
+        s.execute(delete(WorkerProcess).where(WorkerProcess.last_seen < old))
+        s.execute(delete(WorkerCall).where(WorkerCall.created_at < old))
+
+    for job_id, attempt, queue in to_send:
+        send_job(celery, job_id, attempt, queue)
+    for d in deliveries:
+        send_webhook(celery, d)
+    for d_id, attempt in webhook_sends:
+        send_webhook(celery, d_id, attempt)
+    return report

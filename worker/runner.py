@@ -1,0 +1,246 @@
+"""Run one job: claim the row, run the pipeline with progress, heartbeat and cancel checks, record the outcome.
+
+Independent of Celery (the task in worker/tasks.py is a thin wrapper), so it can be tested directly. Every write
+is conditional on (job id, attempt, status running): a run that lost its job to the reaper can write nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select, update
+
+from api.db import session_scope, utcnow
+from api.joblife import queue_webhook
+from api.models import Job
+from api.settings import Settings
+from api.storage import Storage
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FIELDS = {"result.glb": "result_glb", "before.glb": "before_glb", "metrics.json": "metrics_json",
+                 "source.glb": "source_glb"}
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as None and unknown objects as strings (PostgreSQL JSON rejects NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    try:  # numpy / torch scalars
+        return json_safe(value.item())
+    except (AttributeError, ValueError):
+        return str(value)
+
+
+@dataclass
+class RunResult:
+    """How a run ended: ``skipped`` (not ours to run), ``lost`` (reaper took it), or the job's final status."""
+
+    outcome: str
+    webhook_delivery: str | None = None
+
+
+class JobRun:
+    """One attempt of one job inside a worker process."""
+
+    def __init__(self, settings: Settings, job_id: str, attempt: int, hostname: str) -> None:
+        self.settings = settings
+        self.url = settings.resolved_database_url
+        self.storage = Storage(settings.data_dir)
+        self.job_id = job_id
+        self.attempt = attempt
+        self.hostname = hostname
+        self.cancel_event = threading.Event()
+        self.lost_event = threading.Event()
+        self._stop = threading.Event()
+        self._last_progress_write = 0.0
+        self._last_stage: str | None = None
+        self._last_cancel_check = 0.0
+
+    # Row updates ---------------------------------------------------------------------------------------------
+    def _mine(self) -> tuple[Any, ...]:
+        return (Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "running")
+
+    def claim(self) -> bool:
+        """queued -> running for this attempt; False when the row is not queued at this attempt."""
+        now = utcnow()
+        with session_scope(self.url) as s:
+            n = s.execute(
+                update(Job)
+                .where(Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "queued")
+                .values(status="running", stage="starting", progress=0.0, worker=self.hostname, started_at=now,
+                        heartbeat_at=now, updated_at=now)
+            ).rowcount
+        return n == 1
+
+    def beat(self) -> None:
+        """Refresh the heartbeat; notice a cancel request or a lost job."""
+        now = utcnow()
+        with session_scope(self.url) as s:
+            n = s.execute(update(Job).where(*self._mine()).values(heartbeat_at=now)).rowcount
+            if n == 0:
+                self.lost_event.set()
+                self.cancel_event.set()
+                return
+            if s.scalar(select(Job.cancel_requested).where(Job.id == self.job_id)):
+                self.cancel_event.set()
+
+    def progress(self, stage: str, fraction: float) -> None:
+        """The pipeline's progress callback (throttled writes; always on a stage change)."""
+        now = time.monotonic()
+        if (stage == self._last_stage and fraction < 1.0
+                and now - self._last_progress_write < self.settings.progress_min_interval_seconds):
+            return
+        self._last_stage = stage
+        self._last_progress_write = now
+        frac = min(1.0, max(0.0, float(fraction))) if math.isfinite(fraction) else 0.0
+        with session_scope(self.url) as s:
+            n = s.execute(update(Job).where(*self._mine()).values(stage=stage[:64], progress=frac,
+                                                                  updated_at=utcnow())).rowcount
+        if n == 0:
+            self.lost_event.set()
+            self.cancel_event.set()
+
+    def should_cancel(self) -> bool:
+        """The pipeline's cancel check (reads the row at most every 0.5 s)."""
+        if self.cancel_event.is_set():
+            return True
+        now = time.monotonic()
+        if now - self._last_cancel_check >= 0.5:
+            self._last_cancel_check = now
+            with session_scope(self.url) as s:
+                row = s.execute(select(Job.status, Job.attempt, Job.cancel_requested)
+                                .where(Job.id == self.job_id)).one_or_none()
+            if row is None or row.status != "running" or row.attempt != self.attempt:
+                self.lost_event.set()
+                self.cancel_event.set()
+            elif row.cancel_requested:
+                self.cancel_event.set()
+        return self.cancel_event.is_set()
+
+    def finish(self, status: str, **values: Any) -> RunResult:
+        """Record the end of this run; queue the webhook in the same transaction."""
+        now = utcnow()
+        with session_scope(self.url) as s:
+            n = s.execute(
+                update(Job).where(*self._mine())
+                .values(status=status, finished_at=now, updated_at=now, heartbeat_at=now, **values)
+            ).rowcount
+            if n == 0:
+                return RunResult("lost")
+            job = s.get(Job, self.job_id)
+            assert job is not None
+            s.refresh(job)
+            delivery = queue_webhook(s, job)
+        return RunResult(status, delivery)
+
+    # Heartbeat thread ----------------------------------------------------------------------------------------
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.wait(self.settings.heartbeat_interval_seconds):
+            try:
+                self.beat()
+            except Exception:
+                log.exception("heartbeat of job %s failed", self.job_id)
+
+    # The run -------------------------------------------------------------------------------------------------
+    def inputs(self, job: Job) -> Any:
+        from retarget_core.jobs import JobInputs
+        from retarget_core.options import RetargetOptions
+
+        def path_or_builtin(ref: str | None) -> Path | str | None:
+            if ref is None or ref.startswith("builtin:"):
+                return ref
+            return self.storage.blob_path(ref)
+
+        motion = path_or_builtin(job.motion_ref)
+        target = path_or_builtin(job.target_ref)
+        assert motion is not None and target is not None
+        return JobInputs(motion_path=Path(motion), target=target, source_character=path_or_builtin(job.source_ref),
+                         options=RetargetOptions.model_validate(job.options or {}))
+
+    def run(self, pipeline: Callable[..., Any] | None = None) -> RunResult:
+        """Claim and run; ``pipeline`` defaults to retarget_core.pipeline.run_job (tests pass their own)."""
+        if not self.claim():
+            log.info("job %s attempt %s is not queued: nothing to do", self.job_id, self.attempt)
+            return RunResult("skipped")
+        hb = threading.Thread(target=self._heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
+        hb.start()
+        try:
+            return self._run(pipeline)
+        finally:
+            self._stop.set()
+            hb.join(timeout=5)
+
+    def _run(self, pipeline: Callable[..., Any] | None) -> RunResult:
+        from celery.exceptions import SoftTimeLimitExceeded
+
+        from retarget_core.errors import RetargetError
+        from retarget_core.jobs import JobCanceled
+
+        with session_scope(self.url) as s:
+            job = s.get(Job, self.job_id)
+            assert job is not None
+            inputs = self.inputs(job)
+        out_dir = self.storage.job_run_dir(self.job_id, self.attempt)
+        try:
+            if pipeline is None:
+                from retarget_core.pipeline import run_job as pipeline
+            outputs = pipeline(inputs, out_dir, progress=self.progress, should_cancel=self.should_cancel)
+        except JobCanceled:
+            if self.lost_event.is_set():
+                return RunResult("lost")
+            return self.finish("canceled", message="canceled by the client", stage=self._last_stage)
+        except RetargetError as exc:
+            return self.finish("failed", message=self._clean(str(exc), inputs), error_kind="input")
+        except SoftTimeLimitExceeded:
+            return self.finish(
+                "failed", error_kind="timeout",
+                message=f"the job ran longer than {self.settings.job_soft_time_limit_seconds} s and was stopped "
+                "(setting RETARGET_API_JOB_SOFT_TIME_LIMIT_SECONDS); try a shorter frame range",
+            )
+        except Exception as exc:
+            log.error("job %s failed with an internal error:\n%s", self.job_id, traceback.format_exc())
+            text = self._clean(f"{type(exc).__name__}: {exc}", inputs)
+            return self.finish("failed", message=f"internal error: {text}"[:2000], error_kind="internal")
+        if self.lost_event.is_set():
+            return RunResult("lost")
+        files: dict[str, str] = {}
+        for name, attr in OUTPUT_FIELDS.items():
+            p = getattr(outputs, attr, None)
+            if p is None and (out_dir / name).is_file():
+                p = out_dir / name
+            if p is not None and Path(p).is_file():
+                files[name] = self.storage.relative(Path(p))
+        missing = [n for n in ("result.glb", "before.glb", "metrics.json") if n not in files]
+        if missing:
+            return self.finish("failed", error_kind="internal",
+                               message=f"internal error: the pipeline did not write {', '.join(missing)}")
+        return self.finish(
+            "succeeded", stage="done", progress=1.0, outputs=files,
+            summary=json_safe(getattr(outputs, "summary", None) or {}),
+            stage_seconds=json_safe(getattr(outputs, "stage_seconds", None) or {}),
+            warnings=[str(w) for w in (getattr(outputs, "warnings", None) or [])],
+        )
+
+    def _clean(self, text: str, inputs: Any) -> str:
+        """Replace storage paths (hashes) in a message by what the user knows the files as."""
+        names = {inputs.motion_path: "the motion", inputs.target: "the target character",
+                 inputs.source_character: "the source character"}
+        for p, label in names.items():
+            if isinstance(p, Path):
+                text = text.replace(str(p), label)
+        return text
