@@ -474,6 +474,10 @@ class _Mapper:
         """Left/right of two structural chains: from names, else from rest positions (+X is left)."""
         out: dict[str, int] = {}
         named = [self.side_of_chain(r, e) if e is not None else None for r, e in zip(roots, ends, strict=True)]
+        if (named[0] is None) != (named[1] is None):  # one chain's names tell its side: the other is the other
+            known = named[0] or named[1]
+            other = SIDES[1 - SIDES.index(known or "")]
+            named = [n or other for n in named]
         if named[0] and named[1] and named[0] != named[1]:
             for side, e in zip(named, ends, strict=True):
                 if side is not None and e is not None:
@@ -509,7 +513,11 @@ class _Mapper:
             return float(self.is_ancestor(topo.chest, j) and not any(self.is_ancestor(r, j) for r in limbs))
 
         def key(role: str, side: str | None) -> Callable[[int], float]:
-            return lambda j: self.score(j, role, side) and self.score(j, role, side) + fits(j, role)
+            def rank(j: int) -> float:
+                sc = self.score(j, role, side)
+                return sc + fits(j, role) if sc > 0 else 0.0
+
+            return rank
 
         for side in SIDES:
             for role, store in (("Hand", hands), ("Foot", feet)):
@@ -720,8 +728,9 @@ class _Mapper:
         if len(feet) == 2 and upper is not None:
             low = self.lca([feet["Left"], feet["Right"], upper])
             if low is not None:
-                chain = [low, *self.sk.ancestors(low)]  # deepest first
-                named = [j for j in chain if self.score(j, "Hips") > 0]
+                # deepest first; above the branching joint only a clear name counts (not Rigify's 'root' bone)
+                chain = [low, *self.sk.ancestors(low)]
+                named = [j for j in chain if self.score(j, "Hips") >= (1e-9 if j == low else 0.9)]
                 if named:  # the branching joint itself is sure whatever its name's strength ('root')
                     sc = self.score(named[0], "Hips")
                     self.assign("Hips", named[0], max(sc, 0.85) if named[0] == low else 0.9 * sc, "name")
@@ -734,7 +743,7 @@ class _Mapper:
             self.warn("Hips chosen by name alone: the legs and the chest could not be located to check it")
         return hips
 
-    def map_spine(self, hips: int, chest: int, head: int | None) -> list[int]:
+    def map_spine(self, hips: int, chest: int) -> list[int]:
         """Distribute the joints from Hips to the chest onto Spine/Spine1/Spine2; returns the neck-named joints
         trimmed from the top of that chain."""
         chain = [j for j in self.path(hips, chest) if not self.info[j].ignored]
@@ -808,7 +817,7 @@ class _Mapper:
             self.assign("Head", head, conf, method)
         trimmed: list[int] = []
         if hips is not None and chest is not None and self.is_ancestor(hips, chest) and hips != chest:
-            trimmed = self.map_spine(hips, chest, head)
+            trimmed = self.map_spine(hips, chest)
         elif chest is not None:
             self.warn("the chest is not below Hips: the spine joints are not mapped")
         if chest is not None and head is not None and self.is_ancestor(chest, head) and chest != head:

