@@ -40,7 +40,7 @@ import gzip
 import importlib.util
 import json
 from dataclasses import dataclass
-from functools import cache, lru_cache
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +58,7 @@ BASE_MESH_FILE = "3dobjs/base.obj"
 MACRO_DIR = "targets/macrodetails"
 RIG_PREFIX = "mixamorig:"
 INFLUENCES = 4
+TARGET_CACHE_SIZE = 192  # parsed targets kept in memory (about 0.25 MB each; all 348 macro targets: 85 MB)
 UNITS_TO_METRES = 0.1  # MakeHuman units are decimetres
 
 # MakeHuman's age macro in years: the macro value at 1, 11, 25 and 90 years (linear in between).
@@ -164,16 +165,17 @@ def base_mesh() -> BaseMesh:
     return BaseMesh(vertices, body, groups, num_body)
 
 
-@cache
+@lru_cache(maxsize=TARGET_CACHE_SIZE)
 def load_target(relative_path: str) -> tuple[np.ndarray, np.ndarray] | None:
     """A shape target: vertex indices ``(K,)`` and offsets ``(K, 3)`` in MakeHuman units, or None when the
-    file does not exist. ``relative_path`` is relative to the asset folder, without ``.target.gz``."""
+    file does not exist. ``relative_path`` is relative to the asset folder, without ``.target.gz``.
+    Parsed targets are kept in a bounded cache (one body needs up to about 60 of them, 5 ms each to parse)."""
     path = asset_dir() / f"{relative_path}.target.gz"
     if not path.is_file():
         return None
     rows = [ln for ln in gzip.decompress(path.read_bytes()).split(b"\n") if ln.strip() and not ln.startswith(b"#")]
     data = np.array(b" ".join(rows).split(), dtype=np.float64).reshape(-1, 4)
-    idx = data[:, 0].astype(np.int64)
+    idx = data[:, 0].astype(np.int32)
     offsets = data[:, 1:].astype(np.float32)
     idx.setflags(write=False)
     offsets.setflags(write=False)
@@ -337,8 +339,10 @@ def skin_influences() -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("some body vertices have no skinning weight")
     top = top / total
     # Unused slots point at the joint of the largest weight with weight 0 (valid indices, no influence).
-    order = np.where(top > 0, order, order[:, :1])
-    return order.astype(np.int64), top
+    order = np.where(top > 0, order, order[:, :1]).astype(np.int64)
+    order.setflags(write=False)
+    top.setflags(write=False)
+    return order, top
 
 
 def body_triangles() -> np.ndarray:
@@ -350,25 +354,38 @@ def body_triangles() -> np.ndarray:
     return tri
 
 
-def _generate(params: BodyParams) -> Character:
-    mesh = base_mesh()
-    nb = mesh.num_body_vertices
+@dataclass(frozen=True)
+class _Shape:
+    """What differs between bodies: rest vertices ``(V, 3)`` and joint positions ``(22, 3)``, in metres."""
+
+    vertices: np.ndarray
+    joints: np.ndarray
+
+
+@lru_cache(maxsize=64)
+def _shape(params: BodyParams) -> _Shape:
+    """The placed body and joints for ``params`` (steps 1-4 of the module docstring), cached in-process."""
+    nb = base_mesh().num_body_vertices
     verts, _ = shaped_vertices(params)
     scale = UNITS_TO_METRES if params.height is None else params.height / _body_height(verts, nb) * UNITS_TO_METRES
     verts = verts * scale
     joints = joint_positions(verts)
     hips = joints[CANONICAL_JOINTS.index("Hips")]
     offset = np.array([-hips[0], -verts[:nb, 1].min(), -hips[2]])
-    verts = verts + offset
-    joints = joints + offset
+    body = (verts[:nb] + offset).astype(np.float32)
+    placed = (joints + offset).astype(np.float64)
+    body.setflags(write=False)
+    placed.setflags(write=False)
+    return _Shape(body, placed)
 
-    parents = [
-        CANONICAL_JOINTS.index(p) if p is not None else -1 for p in (CANONICAL_PARENT[n] for n in CANONICAL_JOINTS)
-    ]
-    local = joints.copy()
+
+def _generate(params: BodyParams) -> Character:
+    shape = _shape(params)
+    parents = [CANONICAL_JOINTS.index(p) if p else -1 for p in (CANONICAL_PARENT[n] for n in CANONICAL_JOINTS)]
+    local = shape.joints.copy()
     for j, p in enumerate(parents):
         if p >= 0:
-            local[j] = joints[j] - joints[p]
+            local[j] = shape.joints[j] - shape.joints[p]
     rest_rot = torch.zeros(len(CANONICAL_JOINTS), 4)
     rest_rot[:, 3] = 1.0
     skeleton = Skeleton(list(CANONICAL_JOINTS), parents, torch.tensor(local, dtype=torch.float32), rest_rot)
@@ -376,35 +393,18 @@ def _generate(params: BodyParams) -> Character:
     return Character(
         name=params.name,
         skeleton=skeleton,
-        vertices=torch.tensor(verts[:nb], dtype=torch.float32),
+        vertices=torch.from_numpy(shape.vertices.copy()),
         faces=torch.from_numpy(body_triangles()),
         skin_joints=torch.from_numpy(skin_j.copy()),
-        skin_weights=torch.tensor(skin_w, dtype=torch.float32),
-    )
-
-
-@lru_cache(maxsize=64)
-def _cached(params: BodyParams) -> Character:
-    return _generate(params)
-
-
-def _copy(character: Character) -> Character:
-    sk = character.skeleton
-    return Character(
-        name=character.name,
-        skeleton=Skeleton(list(sk.names), list(sk.parents), sk.rest_translations.clone(), sk.rest_rotations.clone()),
-        vertices=character.vertices.clone(),
-        faces=character.faces.clone(),
-        skin_joints=character.skin_joints.clone(),
-        skin_weights=character.skin_weights.clone(),
+        skin_weights=torch.from_numpy(skin_w.astype(np.float32)),
     )
 
 
 def make_body(params: BodyParams) -> Character:
     """A skinned MakeHuman body for ``params`` (see the module docstring): 22 canonical joints, metres, Y up,
-    facing +Z, feet on y = 0, A-pose rest with identity joint rotations. Deterministic; results are cached
-    in-process and each call returns its own copy."""
-    return _copy(_cached(params))
+    facing +Z, feet on y = 0, A-pose rest with identity joint rotations. Deterministic. The shaped vertices
+    and joints are cached in-process (the 64 latest parameter sets); every call returns new tensors."""
+    return _generate(params)
 
 
 __all__ = [

@@ -246,14 +246,17 @@ def test_params_are_validated() -> None:
 
 def test_generation_is_deterministic_and_cache_returns_copies() -> None:
     params = BodyParams(name="det", gender=0.3, age=47.0, weight=0.7, muscle=0.35, proportions=0.8, height=1.66)
-    a = makehuman._generate(params)
-    b = makehuman._generate(params)
-    assert torch.equal(a.vertices, b.vertices)
-    assert torch.equal(a.skeleton.rest_translations, b.skeleton.rest_translations)
+    uncached = makehuman._shape.__wrapped__
+    a, b = uncached(params), uncached(params)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.joints, b.joints)
     first = make_body(params)
     first.vertices += 1.0
+    first.skin_weights *= 2.0
+    first.skeleton.rest_translations.zero_()
     second = make_body(params)
-    assert torch.equal(second.vertices, a.vertices)
+    assert np.array_equal(second.vertices.numpy(), a.vertices)
+    assert torch.allclose(second.skin_weights.sum(dim=1), torch.ones(second.num_vertices), atol=1e-5)
+    assert np.allclose(second.skeleton.rest_global()[1].numpy(), a.joints, atol=1e-6)
     assert second.name == "det"
 
 
