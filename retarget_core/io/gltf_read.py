@@ -309,14 +309,14 @@ def _read_skins(data: GltfData, n_nodes: int) -> list[_Skin]:
 def limit_influences(joints: np.ndarray, weights: np.ndarray, k: int = MAX_INFLUENCES) -> tuple[np.ndarray, np.ndarray]:
     """The ``k`` largest influences per vertex ``(V, k)`` from ``(V, K)`` joint indices and weights: repeated
     joints are summed, rows renormalised to 1 (float32), unused slots get joint 0 and weight 0."""
-    joints = joints.astype(np.int64).copy()
-    weights = weights.astype(np.float64).copy()
+    by_joint = np.argsort(joints, axis=1, kind="stable")
+    joints = np.take_along_axis(joints.astype(np.int64), by_joint, 1)
+    weights = np.take_along_axis(weights.astype(np.float64), by_joint, 1)
     n = joints.shape[1]
-    for a in range(n):
-        for b in range(a + 1, n):
-            same = (joints[:, a] == joints[:, b]) & (weights[:, b] != 0)
-            weights[same, a] += weights[same, b]
-            weights[same, b] = 0.0
+    for c in range(n - 1, 0, -1):  # sum runs of the same joint into the run's first slot
+        same = joints[:, c] == joints[:, c - 1]
+        weights[same, c - 1] += weights[same, c]
+        weights[same, c] = 0.0
     if n < k:
         joints = np.concatenate([joints, np.zeros((joints.shape[0], k - n), np.int64)], 1)
         weights = np.concatenate([weights, np.zeros((weights.shape[0], k - n))], 1)
