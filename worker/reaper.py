@@ -69,14 +69,16 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
                           "memory or shut down); it was not started again"}
                 bucket = report.failed
             else:
+                # read before the UPDATE: the ORM synchronises the loaded object with it
+                job_id, nxt, queue, worker, last = job.id, job.attempt + 1, job.queue, job.worker, job.heartbeat_at
                 n = s.execute(update(Job).where(*mine).values(
-                    status="queued", attempt=job.attempt + 1, stage=None, progress=0.0, worker=None,
+                    status="queued", attempt=nxt, stage=None, progress=0.0, worker=None,
                     started_at=None, heartbeat_at=None, sent_at=now, updated_at=now)).rowcount
                 if n:
-                    report.requeued.append(job.id)
-                    to_send.append((job.id, job.attempt + 1, job.queue))
+                    report.requeued.append(job_id)
+                    to_send.append((job_id, nxt, queue))
                     log.warning("job %s: worker %s silent since %s; queued again as attempt %s",
-                                job.id, job.worker, job.heartbeat_at, job.attempt + 1)
+                                job_id, worker, last, nxt)
                 continue
             n = s.execute(update(Job).where(*mine).values(finished_at=now, updated_at=now, **values)).rowcount
             if n:
@@ -91,11 +93,12 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
             or_(Job.sent_at < resend_before, (Job.sent_at.is_(None)) & (Job.created_at < never_before)),
         )).all()
         for job in waiting:
-            n = s.execute(update(Job).where(Job.id == job.id, Job.attempt == job.attempt, Job.status == "queued")
+            job_id, attempt, queue = job.id, job.attempt, job.queue
+            n = s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.status == "queued")
                           .values(sent_at=now)).rowcount
             if n:
-                report.resent.append(job.id)
-                to_send.append((job.id, job.attempt, job.queue))
+                report.resent.append(job_id)
+                to_send.append((job_id, attempt, queue))
 
         late = now - timedelta(seconds=WEBHOOK_GRACE_SECONDS)
         stuck = s.scalars(select(WebhookDelivery).where(

@@ -18,8 +18,8 @@ from sqlalchemy import select, update
 
 from api.db import session_scope, utcnow
 from api.models import ApiKey, Job, WebhookDelivery
-from api.serialize import webhook_payload
 from api.security import SIGNATURE_HEADER, sign_payload
+from api.serialize import webhook_payload
 from api.settings import Settings
 
 log = logging.getLogger(__name__)

@@ -7,12 +7,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from api_testkit import ApiEnv, answer_inspect
 from sqlalchemy import func, select
 
 from api.db import session_scope, utcnow
 from api.models import Asset, Job, WebhookDelivery, WorkerProcess
 from api.queue import TASK_DELIVER_WEBHOOK, TASK_INSPECT, TASK_RUN_JOB
-from api_testkit import ApiEnv, answer_inspect
 
 GLB = b"glTF\x02\x00\x00\x00" + b"\x00" * 200
 BVH = b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xrotation Yrotation Zrotation\n}\nMOTION\n"

@@ -1,7 +1,7 @@
 """Initial schema: keys, assets, worker calls, batches, jobs, webhook deliveries, workers.
 
 Revision ID: 0001
-Revises: 
+Revises:
 Create Date: 2026-11-22 01:42:53.163535
 """
 
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 from alembic import op
-
 
 revision = '0001'
 down_revision = None
