@@ -1,0 +1,59 @@
+"""The ``service`` fixture: real Redis, real worker processes and the API under uvicorn (see service_harness)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import pytest
+from service_harness import LOCK_KEY, REDIS_HOST, REDIS_PORT, REPO, Service, claim_redis_db, free_port
+
+from api.db import dispose_all
+from api.migrate import upgrade
+
+
+@pytest.fixture(scope="session")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    import redis
+
+    try:
+        redis.Redis(REDIS_HOST, REDIS_PORT, socket_timeout=2).ping()
+    except Exception as exc:
+        pytest.skip(f"Redis is not answering at {REDIS_HOST}:{REDIS_PORT}: {exc}")
+    db, token = claim_redis_db()
+    r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
+    r.flushdb()
+    r.set(LOCK_KEY, token, ex=3600)
+    root = tmp_path_factory.mktemp("service")
+    data_dir, log_dir = root / "data", root / "logs"
+    log_dir.mkdir()
+    database_url = f"sqlite:///{root / 'service.sqlite'}"
+    upgrade(database_url)
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
+    env.update({
+        "PYTHONPATH": str(REPO),
+        "RETARGET_API_DATA_DIR": str(data_dir),
+        "RETARGET_API_DATABASE_URL": database_url,
+        "REDIS_URL": f"redis://{REDIS_HOST}:{REDIS_PORT}/{db}",
+        "RETARGET_API_MAX_UPLOAD_BYTES": str(32 * 1024 * 1024),
+        "RETARGET_API_INSPECT_TIMEOUT_SECONDS": "90",
+        "RETARGET_API_HEARTBEAT_INTERVAL_SECONDS": "0.5",
+        "RETARGET_API_HEARTBEAT_TIMEOUT_SECONDS": "4",
+        "RETARGET_API_REAPER_INTERVAL_SECONDS": "1",
+        "RETARGET_API_PROGRESS_MIN_INTERVAL_SECONDS": "0.1",
+        "RETARGET_API_WEBHOOK_BACKOFF_BASE_SECONDS": "0.5",
+        "OMP_NUM_THREADS": "1",
+    })
+    svc = Service(f"http://127.0.0.1:{port}", data_dir, database_url, env["REDIS_URL"], env, log_dir)
+    try:
+        svc.start_worker("io", "io")
+        svc.start_worker("cpu", "cpu")
+        svc.start("api", ["-m", "uvicorn", "api.main:create_app", "--factory", "--host", "127.0.0.1", "--port",
+                          str(port), "--log-level", "warning"])
+        svc.wait_ready()
+        yield svc
+    finally:
+        svc.stop_all()
+        dispose_all()
+        r.flushdb()
