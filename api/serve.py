@@ -46,10 +46,14 @@ class WorkerSupervisor(threading.Thread):
             self._start(i)
         while not self.stopping.wait(2.0):
             for i, p in enumerate(self.procs):
-                if p is not None and p.poll() is not None and not self.stopping.is_set():
-                    log.warning("worker %s exited with %s; starting it again", self.commands[i], p.returncode)
-                    time.sleep(1.0)
-                    self._start(i)
+                if p is None or p.poll() is None or self.stopping.is_set():
+                    continue
+                if p.returncode in (0, -signal.SIGINT, -signal.SIGTERM):  # asked to stop (Ctrl-C reaches it too)
+                    self.procs[i] = None
+                    continue
+                log.warning("worker %s exited with %s; starting it again", self.commands[i], p.returncode)
+                time.sleep(1.0)
+                self._start(i)
 
     def stop(self, timeout: float = 20.0) -> None:
         self.stopping.set()
@@ -72,7 +76,7 @@ def worker_commands(settings: Settings, concurrency: int) -> list[list[str]]:
     py = sys.executable
     return [
         [py, "-m", "worker", "--queues", "cpu", "--concurrency", str(concurrency)],
-        [py, "-m", "worker", "--queues", "io", "--concurrency", "1"],
+        [py, "-m", "worker", "--queues", "io", "--concurrency", "2"],
     ]
 
 
