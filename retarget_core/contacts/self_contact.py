@@ -6,12 +6,17 @@ other group except its own forearm:
 1. candidates: the groups' bounding boxes, grown by the distance threshold, overlap;
 2. the groups intersect when any of their triangles intersect (box broad phase, exact narrow phase), and their
    nearest vertices are found (all pairs, on the vertices inside the other group's box);
-3. the pair is a contact when (they intersect and the average cosine similarity of the velocities of their
-   closest vertex pairs exceeds 0.9) or (their nearest vertices are closer than 0.2 cm scaled from a 1.38 m
-   character to this one);
+3. the pair is a contact when they intersect and the average cosine similarity of the velocities of their
+   closest vertex pairs exceeds 0.9 (they move together: a grip, a hand resting on the hips), or when they do
+   not intersect and their nearest vertices are closer than 0.2 cm scaled from a 1.38 m character to this one
+   (touching). Intersecting groups that do not move together are a pass-through, not a contact. (The paper
+   states the two rules with "or"; read literally, the distance rule would accept every intersection, since
+   intersecting surfaces are at distance zero, and the velocity rule would never matter.)
 4. each contact keeps its 3 closest vertex pairs (distinct hand vertices).
 
-Choices the paper leaves open: velocities are central differences of the posed vertices; a vertex slower than
+Choices the paper leaves open: velocities are central differences of the posed vertices, taken relative to the
+velocity of the body's centroid (in global coordinates, as the paper says, every part of a walking body moves
+the same way and any two would agree); a vertex slower than
 2 mm per 1/30 s (at 1.80 m) counts as still, two still vertices count as moving together (a hand resting on
 the hips), one still and one moving as not; the cosine is averaged over the 10 closest pairs.
 """
@@ -123,8 +128,10 @@ def detect_self_contacts(
     thr = params.distance_m * height / params.distance_reference_height_m
     still = params.still_speed_m * height / params.speed_reference_height_m * params.reference_fps / fps
     names = parts.names
-    groups = [parts.group(n, params.group_threshold).numpy() for n in names]
-    group_faces = [parts.group_faces(n, params.group_threshold).numpy() for n in names]
+    weights = parts.weights.numpy()
+    faces = parts.faces.numpy()
+    groups = [np.nonzero(weights[:, s] >= params.group_threshold)[0] for s in range(len(names))]
+    group_faces = [faces[(weights[faces, s] >= params.group_threshold).all(1)] for s in range(len(names))]
     present = [i for i, g in enumerate(groups) if len(g) > 0]
     hands = [parts.index(h) for h in HAND_SEGMENTS if parts.find(h) is not None and len(groups[parts.index(h)]) > 0]
     empty = SelfContacts(f_n, names, *(torch.zeros(0, dtype=torch.long) for _ in range(3)),
@@ -136,6 +143,7 @@ def detect_self_contacts(
     hi = np.zeros((f_n, len(names), 3), dtype=np.float32)
     lo[:, present], hi[:, present] = _group_boxes(x_all, [groups[i] for i in present])
     vel = vertex_velocities(torch.from_numpy(x_all)).numpy()
+    vel -= vel.mean(axis=1, keepdims=True)  # relative to the body's centroid: walking is not a contact
     rows: list[tuple[int, int, int, np.ndarray, np.ndarray, bool, float]] = []
     for h in hands:
         others = [g for g in present if g != h and g != parts.parent[h]]
@@ -162,6 +170,13 @@ def detect_self_contacts(
     )
 
 
+def _max_edge(x: np.ndarray, faces: np.ndarray) -> float:
+    if len(faces) == 0:
+        return 0.0
+    t = x[faces]
+    return float(np.sqrt(((t - t[:, [1, 2, 0]]) ** 2).sum(-1).max()))
+
+
 def _test_pair(
     x: np.ndarray, vel: np.ndarray, gh: np.ndarray, gg: np.ndarray, fh: np.ndarray, fg: np.ndarray,
     thr: float, still: float, params: SelfContactParams,
@@ -175,10 +190,22 @@ def _test_pair(
     sg = np.nonzero(((xg >= lo_h) & (xg <= hi_h)).all(-1))[0]
     if len(sh) == 0 or len(sg) == 0:
         return None  # no vertex of one group near the other's box: neither touching nor intersecting
-    intersect = len(intersecting_pairs(x, fh, fg)) > 0
     tree = cKDTree(xg[sg])
     dmin, arg = tree.query(xh[sh], k=1)
     closest = float(dmin.min())
+    # Two meshes can only intersect where their vertices are within two edge lengths of each other.
+    reach = 2.0 * max(_max_edge(x, fh), _max_edge(x, fg))
+    if closest >= max(thr, reach):
+        return None
+    intersect = False
+    if closest < reach:
+        # Only triangles with a vertex within reach of the other group can take part in an intersection.
+        near = np.zeros(len(x), dtype=bool)
+        near[gh[sh[dmin < reach]]] = True
+        dg, _ = cKDTree(xh[sh]).query(xg[sg], k=1, distance_upper_bound=reach)
+        near[gg[sg[np.isfinite(dg)]]] = True
+        fh_near, fg_near = fh[near[fh].any(1)], fg[near[fg].any(1)]
+        intersect = len(intersecting_pairs(x, fh_near, fg_near, first_only=True)) > 0
     if not intersect and closest >= thr:
         return None
     order = np.argsort(dmin, kind="stable")
@@ -188,7 +215,9 @@ def _test_pair(
     cos = (va * vb).sum(-1) / np.maximum(sa * sb, 1e-12)
     cos = np.where((sa < still) & (sb < still), 1.0, np.where((sa < still) | (sb < still), 0.0, cos))
     mean_cos = float(cos.mean())
-    if not ((intersect and mean_cos > params.cosine) or closest < thr):
+    # Intersecting groups touch when they move together; groups that do not intersect touch when their
+    # nearest vertices are within the distance threshold.
+    if intersect and mean_cos <= params.cosine:
         return None
     top = order[: params.pairs]
     pairs = np.stack([gh[sh[top]], gg[sg[arg[top]]]], axis=1)

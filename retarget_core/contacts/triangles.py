@@ -53,10 +53,51 @@ def triangle_boxes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
 
 
-def intersecting_pairs(vertices: np.ndarray, faces_a: np.ndarray, faces_b: np.ndarray, max_pairs: int = 2_000_000) -> np.ndarray:
+def _cells(lo: np.ndarray, hi: np.ndarray, origin: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """(triangle, cell key) for every grid cell each box ``lo..hi (T, 3)`` touches."""
+    c0 = np.floor((lo - origin) / cell).astype(np.int64)
+    c1 = np.floor((hi - origin) / cell).astype(np.int64)
+    n = c1 - c0 + 1  # (T, 3)
+    count = n.prod(1)
+    tri = np.repeat(np.arange(len(lo)), count)
+    local = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    nx, ny = n[tri, 0], n[tri, 1]
+    ix = c0[tri, 0] + local % nx
+    iy = c0[tri, 1] + (local // nx) % ny
+    iz = c0[tri, 2] + local // (nx * ny)
+    return tri, (ix * 1_048_576 + iy) * 1_048_576 + iz
+
+
+def candidate_pairs(a_lo: np.ndarray, a_hi: np.ndarray, b_lo: np.ndarray, b_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of boxes (indices into a and b) that overlap, found through a uniform grid of cells about the size
+    of the boxes (sort and search, no Python loop)."""
+    extent = np.concatenate([a_hi - a_lo, b_hi - b_lo])
+    cell = max(float(np.median(extent.max(1))) * 1.5, 1e-6)
+    origin = np.minimum(a_lo.min(0), b_lo.min(0))
+    ta, ka = _cells(a_lo, a_hi, origin, cell)
+    tb, kb = _cells(b_lo, b_hi, origin, cell)
+    order = np.argsort(kb, kind="stable")
+    tb, kb = tb[order], kb[order]
+    start = np.searchsorted(kb, ka, side="left")
+    stop = np.searchsorted(kb, ka, side="right")
+    count = stop - start
+    ia = np.repeat(ta, count)
+    offs = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    ib = tb[np.repeat(start, count) + offs]
+    if len(ia) == 0:
+        return ia, ib
+    key = np.unique(ia * (len(b_lo) + 1) + ib)
+    ia, ib = key // (len(b_lo) + 1), key % (len(b_lo) + 1)
+    keep = ((a_lo[ia] <= b_hi[ib]) & (a_hi[ia] >= b_lo[ib])).all(-1)
+    return ia[keep], ib[keep]
+
+
+def intersecting_pairs(
+    vertices: np.ndarray, faces_a: np.ndarray, faces_b: np.ndarray, first_only: bool = False, block: int = 200_000
+) -> np.ndarray:
     """Index pairs ``(K, 2)`` into ``faces_a (Ta, 3)`` and ``faces_b (Tb, 3)`` of intersecting triangles of the
-    posed ``vertices (V, 3)``. Triangles outside the other group's box are dropped first, then box pairs are
-    tested in blocks of at most ``max_pairs``, then the exact test runs on overlapping boxes only."""
+    posed ``vertices (V, 3)``: overlapping triangle boxes through a uniform grid (broad phase), then the exact
+    test on those pairs in blocks of ``block``. ``first_only``: stop after the first block with a hit."""
     if len(faces_a) == 0 or len(faces_b) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     a_lo, a_hi = triangle_boxes(vertices, faces_a)
@@ -65,16 +106,14 @@ def intersecting_pairs(vertices: np.ndarray, faces_a: np.ndarray, faces_b: np.nd
     ib = np.nonzero(((b_lo <= a_hi.max(0)) & (b_hi >= a_lo.min(0))).all(-1))[0]
     if len(ia) == 0 or len(ib) == 0:
         return np.zeros((0, 2), dtype=np.int64)
+    pa, pb = candidate_pairs(a_lo[ia], a_hi[ia], b_lo[ib], b_hi[ib])
+    fa, fb = ia[pa], ib[pb]
     out = []
-    rows = max(1, max_pairs // len(ib))
-    for s in range(0, len(ia), rows):
-        sa = ia[s : s + rows]
-        over = ((a_lo[sa, None] <= b_hi[None, ib]) & (a_hi[sa, None] >= b_lo[None, ib])).all(-1)
-        pa, pb = np.nonzero(over)
-        if len(pa) == 0:
-            continue
-        fa, fb = sa[pa], ib[pb]
-        hit = triangles_intersect(vertices[faces_a[fa]], vertices[faces_b[fb]])
+    for s in range(0, len(fa), block):
+        ca, cb = fa[s : s + block], fb[s : s + block]
+        hit = triangles_intersect(vertices[faces_a[ca]], vertices[faces_b[cb]])
         if hit.any():
-            out.append(np.stack([fa[hit], fb[hit]], axis=1))
+            out.append(np.stack([ca[hit], cb[hit]], axis=1))
+            if first_only:
+                break
     return np.concatenate(out) if out else np.zeros((0, 2), dtype=np.int64)

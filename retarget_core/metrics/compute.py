@@ -1,0 +1,318 @@
+"""Quality metrics of a motion performed by a character (paper 1 table 1, paper 2 table 1, and what users ask for).
+
+Two steps: :func:`measure_clip` poses the character by the motion and measures per-frame quantities once
+(:class:`ClipMeasures`); :func:`summarize` turns them into the numbers of the report, comparing with the
+"original" motion (the input of a refinement, normally the copy baseline) and a reference motion when given.
+Lengths are reported in centimetres on the body and at a 1.80 m character (``scale_to_180 = 1.80 / height``);
+see docs/metrics.md for every field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from retarget_core.body_parts import END_EFFECTOR_SEGMENTS, BodyParts
+from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
+from retarget_core.character import Character
+from retarget_core.contacts.correspondence import ContactConstraints
+from retarget_core.contacts.foot_contact import FootContactParams, FootContacts, detect_foot_contacts
+from retarget_core.energy.sdf import REFERENCE_HEIGHT_M, PartSDF, distance_matrix, sample_pairs, segment_matrices, vertex_depths
+from retarget_core.metrics.report import MethodMetrics, MetricSummary, Series, measure
+from retarget_core.motion import Motion
+
+LIMBS: tuple[str, ...] = tuple(END_EFFECTOR_SEGMENTS)
+
+
+@dataclass(frozen=True)
+class MetricParams:
+    """Tolerances at a 1.80 m character."""
+
+    penetration_tolerance_m: float = 0.003
+    contact_tolerance_m: float = 0.01
+    frame_chunk: int = 64
+
+
+@dataclass
+class ClipMeasures:
+    """Per-frame measurements of one motion on one character (SI units, on the body's own scale).
+
+    joints: ``(F, C, 3)`` world positions of the mapped canonical joints (``joint_names``).
+    vertex_depth: ``(F, V)`` weighted penetration depth of every vertex (m).
+    penetration_volume: ``(F,)`` sum of vertex area x depth (m^3).
+    limb_distance: ``(F, 4)`` paper 2's signed distance of each limb's end segments to the nearest segment of
+        another cluster (m, capped at the grid margin), limbs in :data:`LIMBS` order.
+    lowest_vertex: ``(F,)`` height of the lowest vertex (m).
+    contact_distance: ``(M,)`` distance of each contact constraint's vertex pair (m); contact_frame ``(M,)``.
+    feet: foot contacts detected on this motion.
+    """
+
+    name: str
+    fps: float
+    height: float
+    num_vertices: int
+    joint_names: list[str]
+    joints: Tensor
+    vertex_depth: Tensor
+    penetration_volume: Tensor
+    limb_distance: Tensor
+    lowest_vertex: Tensor
+    contact_distance: Tensor
+    contact_frame: Tensor
+    feet: FootContacts
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.joints.shape[0])
+
+    @property
+    def scale_to_180(self) -> float:
+        return REFERENCE_HEIGHT_M / self.height
+
+
+def limb_distances(parts: BodyParts, dist: Tensor) -> Tensor:
+    """``(F, 4)`` from paper 2's M_dist ``(F, S, S)``: per limb, the minimum over its end segments (hand and
+    forearm; foot, toe and shin) against every segment of another cluster, with paper 2's mask Omega."""
+    mask = parts.collision_mask(ignore_arm_chest=True)
+    out = []
+    big = torch.finfo(dist.dtype).max
+    for limb in LIMBS:
+        rows = [parts.index(n) for n in END_EFFECTOR_SEGMENTS[limb] if parts.find(n) is not None]
+        if not rows:
+            out.append(torch.full(dist.shape[:1], float("nan"), dtype=dist.dtype))
+            continue
+        sub = torch.where(mask[rows][None], dist[:, rows], torch.full_like(dist[:, rows], big))
+        out.append(sub.amin(dim=(1, 2)))
+    return torch.stack(out, dim=1)
+
+
+def measure_clip(
+    character: Character,
+    mapping: JointMapping,
+    sdf: PartSDF,
+    motion: Motion,
+    contacts: ContactConstraints | None = None,
+    ground: float = 0.0,
+    params: MetricParams | None = None,
+    foot_params: FootContactParams | None = None,
+) -> ClipMeasures:
+    """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame."""
+    params = params or MetricParams()
+    if motion.skeleton.num_joints != character.skeleton.num_joints:
+        raise ValueError("the motion does not animate this character's skeleton")
+    parts = sdf.parts
+    f_n, v_n = motion.num_frames, character.num_vertices
+    names = [c for c in CANONICAL_JOINTS if c in mapping.joints]
+    idx = torch.tensor([mapping.joints[c] for c in names])
+    depth = torch.zeros(f_n, v_n)
+    volume = torch.zeros(f_n)
+    limb = torch.zeros(f_n, len(LIMBS))
+    lowest = torch.zeros(f_n)
+    c_dist, c_frame = [], []
+    area = sdf.vertex_area
+    with torch.no_grad():
+        grot, gpos = motion.global_transforms()
+        for s in range(0, f_n, params.frame_chunk):
+            e = min(f_n, s + params.frame_chunk)
+            verts = character.pose_vertices(grot[s:e], gpos[s:e])
+            mats = segment_matrices(character, parts, grot[s:e], gpos[s:e])
+            samples = sample_pairs(sdf, verts, mats)
+            d = vertex_depths(sdf, samples, e - s)
+            depth[s:e] = d
+            volume[s:e] = (d * area).sum(-1)
+            limb[s:e] = limb_distances(parts, distance_matrix(sdf, samples, e - s))
+            lowest[s:e] = verts[..., 1].amin(-1)
+            if contacts is not None and contacts.count:
+                keep = (contacts.frame >= s) & (contacts.frame < e)
+                fr = contacts.frame[keep] - s
+                c_dist.append((verts[fr, contacts.i[keep]] - verts[fr, contacts.j[keep]]).norm(dim=-1))
+                c_frame.append(contacts.frame[keep])
+        _, rest_pos = character.skeleton.rest_global()
+        feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
+    return ClipMeasures(
+        motion.name, motion.fps, character.height, v_n, names, gpos[:, idx], depth, volume, limb, lowest - ground,
+        torch.cat(c_dist) if c_dist else torch.zeros(0), torch.cat(c_frame) if c_frame else torch.zeros(0, dtype=torch.long),
+        feet,
+    )  # fmt: skip
+
+
+def _mean(x: Tensor) -> float | None:
+    return float(x.mean()) if x.numel() else None
+
+
+def _series(values: Tensor, unit: str, valid: Tensor | None = None, digits: int = 4) -> Series:
+    vals = [round(float(v), digits) for v in values.tolist()]
+    out: list[float | None] = list(vals)
+    if valid is not None:
+        out = [v if ok else None for v, ok in zip(vals, valid.tolist(), strict=True)]
+    return Series(unit=unit, values=out)
+
+
+def _joint_errors(a: ClipMeasures, b: ClipMeasures, root_relative: bool) -> Tensor:
+    """Per frame mean joint distance ``(F,)`` (m) over the canonical joints both clips have."""
+    common = [n for n in a.joint_names if n in b.joint_names]
+    ia = torch.tensor([a.joint_names.index(n) for n in common])
+    ib = torch.tensor([b.joint_names.index(n) for n in common])
+    pa, pb = a.joints[:, ia], b.joints[:, ib]
+    if root_relative and "Hips" in common:
+        h = common.index("Hips")
+        pa, pb = pa - pa[:, h : h + 1], pb - pb[:, h : h + 1]
+    f = min(pa.shape[0], pb.shape[0])
+    return (pa[:f] - pb[:f]).norm(dim=-1).mean(-1)
+
+
+def summarize(
+    m: ClipMeasures,
+    original: ClipMeasures | None = None,
+    reference: ClipMeasures | None = None,
+    source_feet: FootContacts | None = None,
+    params: MetricParams | None = None,
+) -> MethodMetrics:
+    """The summary and per-frame series of ``m``. ``original``: the motion a refinement started from (MPJPE,
+    M_i, M_o are measured against it; without it, against ``m`` itself). ``reference``: a ground-truth motion
+    on the same character (global position error). ``source_feet``: the source's foot contacts (accuracy, and
+    the frames where foot skate is measured; without them the result's own contacts are used)."""
+    params = params or MetricParams()
+    s = m.scale_to_180
+    cm = 100.0
+    f_n = m.num_frames
+    tol = params.penetration_tolerance_m / s
+    # Penetration.
+    frame_max = m.vertex_depth.amax(-1) if m.num_vertices else torch.zeros(f_n)
+    pen_verts = (m.vertex_depth > tol).float().mean(-1) * 100.0
+    # Paper 2 collision metrics (cm^2).
+    d_cur = m.limb_distance
+    d_org = (original or m).limb_distance[:f_n]
+    valid = ~torch.isnan(d_cur)
+    colliding = (d_cur < 0) & valid
+    m_c = _mean(d_cur[colliding].pow(2)) if colliding.any() else 0.0
+    was = (d_org < 0) & valid[: d_org.shape[0]]
+    cur_at = d_cur[: d_org.shape[0]][was]
+    m_i = _mean(cur_at.clamp_max(0).pow(2)) if was.any() else None
+    m_o = _mean(cur_at.clamp_min(0).pow(2)) if was.any() else None
+    collision_depth = (-d_cur).clamp_min(0).nan_to_num(0.0).amax(-1)
+    # Contacts.
+    c_mean = _mean(m.contact_distance)
+    c_mse = _mean(m.contact_distance.pow(2))
+    c_ok = _mean((m.contact_distance < params.contact_tolerance_m / s).float() * 100.0)
+    c_count = torch.zeros(f_n).index_add(0, m.contact_frame, torch.ones_like(m.contact_distance))
+    c_sum = torch.zeros(f_n).index_add(0, m.contact_frame, m.contact_distance)
+    c_frame = c_sum / c_count.clamp_min(1)
+    # Feet.
+    avail = m.feet.available
+    labels = m.feet.labels[:, avail]
+    accuracy = None
+    if source_feet is not None and avail.any():
+        src = source_feet.labels[:f_n][:, avail]
+        accuracy = float((labels[: src.shape[0]] == src).float().mean())
+    planted = (source_feet.labels[:f_n][:, avail] if source_feet is not None else labels)
+    joints_feet = torch.tensor([j for j in m.feet.joints if j >= 0])
+    skate_frame = torch.zeros(f_n)
+    skate_valid = torch.zeros(f_n, dtype=torch.bool)
+    skate_all: list[Tensor] = []
+    if f_n > 1 and len(joints_feet):
+        feet_idx = [m.joint_names.index(n) for n in _foot_names(m.feet) if n in m.joint_names]
+        pos = m.joints[:, feet_idx]
+        step = (pos[1:, :, [0, 2]] - pos[:-1, :, [0, 2]]).norm(dim=-1)  # (F-1, 4)
+        both = planted[1:] & planted[:-1]
+        skate_all.append(step[both])
+        cnt = both.sum(-1)
+        skate_frame[1:] = (step * both).sum(-1) / cnt.clamp_min(1)
+        skate_valid[1:] = cnt > 0
+    skate = torch.cat(skate_all) if skate_all else torch.zeros(0)
+    ground_pen = (-m.lowest_vertex).clamp_min(0)
+    # Joints: MPJPE (root-relative, against the original), global position error (against the reference).
+    mpjpe = _joint_errors(m, original, True) if original is not None else None
+    gpe = _joint_errors(m, reference, False) if reference is not None else None
+    gpe_mse = None
+    if reference is not None:
+        common = [n for n in m.joint_names if n in reference.joint_names]
+        ia = torch.tensor([m.joint_names.index(n) for n in common])
+        ib = torch.tensor([reference.joint_names.index(n) for n in common])
+        f = min(f_n, reference.num_frames)
+        gpe_mse = float((m.joints[:f, ia] - reference.joints[:f, ib]).pow(2).sum(-1).mean())
+    acc, jerk = _smoothness(m.joints)
+    summary = MetricSummary(
+        frames=f_n,
+        fps=m.fps,
+        penetration_volume=measure(float(m.penetration_volume.mean()) * cm**3 if f_n else None, s**3, "cm^3"),
+        penetration_max_depth=measure(float(frame_max.max()) * cm if f_n else None, s, "cm"),
+        penetration_mean_depth=measure(float(frame_max.mean()) * cm if f_n else None, s, "cm"),
+        penetrating_vertices_percent=_mean(pen_verts),
+        penetrating_frames_percent=_mean((frame_max > tol).float() * 100.0),
+        contact_pairs=int(m.contact_distance.numel()),
+        contact_frames=int((c_count > 0).sum()),
+        contact_distance_mean=measure(c_mean * cm if c_mean is not None else None, s, "cm"),
+        contact_mse=measure(c_mse * cm**2 if c_mse is not None else None, s**2, "cm^2"),
+        contact_satisfied_percent=c_ok,
+        foot_contact_accuracy=accuracy,
+        foot_skate=measure(float(skate.mean()) * cm if skate.numel() else None, s, "cm/frame"),
+        foot_contact_frames=int(planted.any(-1).sum()) if planted.numel() else 0,
+        ground_penetration_mean=measure(float(ground_pen.mean()) * cm if f_n else None, s, "cm"),
+        ground_penetration_max=measure(float(ground_pen.max()) * cm if f_n else None, s, "cm"),
+        global_position_error=measure(_mean(gpe) * cm if gpe is not None and gpe.numel() else None, s, "cm"),
+        global_position_mse=measure(gpe_mse * cm**2 if gpe_mse is not None else None, s**2, "cm^2"),
+        mpjpe=measure(_mean(mpjpe) * cm if mpjpe is not None and mpjpe.numel() else None, s, "cm"),
+        m_c=measure(m_c * cm**2 if m_c is not None else None, s**2, "cm^2"),
+        m_i=measure(m_i * cm**2 if m_i is not None else None, s**2, "cm^2"),
+        m_o=measure(m_o * cm**2 if m_o is not None else None, s**2, "cm^2"),
+        acceleration=measure(acc * cm if acc is not None else None, s, "cm/frame^2"),
+        jerk=measure(jerk * cm if jerk is not None else None, s, "cm/frame^3"),
+    )
+    k = s * cm
+    series: dict[str, Series] = {
+        "penetration_max_depth": _series(frame_max * k, "cm at 1.80 m"),
+        "penetration_volume": _series(m.penetration_volume * k**3, "cm^3 at 1.80 m"),
+        "penetrating_vertices_percent": _series(pen_verts, "%"),
+        "collision_depth": _series(collision_depth * k, "cm at 1.80 m"),
+        "contact_distance": _series(c_frame * k, "cm at 1.80 m", c_count > 0),
+        "foot_skate": _series(skate_frame * k, "cm/frame at 1.80 m", skate_valid),
+        "ground_penetration": _series(ground_pen * k, "cm at 1.80 m"),
+    }
+    for c, name in enumerate(m.feet.names):
+        if bool(m.feet.available[c]):
+            series[f"foot_contact_{name}"] = _series(m.feet.labels[:, c].float(), "0/1", digits=0)
+    if mpjpe is not None:
+        series["mpjpe"] = _series(mpjpe * k, "cm at 1.80 m")
+    if gpe is not None:
+        series["global_position_error"] = _series(gpe * k, "cm at 1.80 m")
+    return MethodMetrics(summary=summary, series=series)
+
+
+def _foot_names(feet: FootContacts) -> list[str]:
+    from retarget_core.contacts.foot_contact import FOOT_JOINTS
+
+    return [canonical for (_, canonical), j in zip(FOOT_JOINTS, feet.joints, strict=True) if j >= 0]
+
+
+def _smoothness(joints: Tensor) -> tuple[float | None, float | None]:
+    """Mean magnitude of joint acceleration and jerk per frame (m/frame^2, m/frame^3)."""
+    acc = jerk = None
+    if joints.shape[0] >= 3:
+        acc = float((joints[2:] - 2 * joints[1:-1] + joints[:-2]).norm(dim=-1).mean())
+    if joints.shape[0] >= 4:
+        jerk = float((joints[3:] - 3 * joints[2:-1] + 3 * joints[1:-2] - joints[:-3]).norm(dim=-1).mean())
+    return acc, jerk
+
+
+def compute_metrics(
+    character: Character,
+    mapping: JointMapping,
+    sdf: PartSDF,
+    motion: Motion,
+    *,
+    contacts: ContactConstraints | None = None,
+    original: ClipMeasures | None = None,
+    reference: ClipMeasures | None = None,
+    source_feet: FootContacts | None = None,
+    params: MetricParams | None = None,
+) -> tuple[MethodMetrics, ClipMeasures]:
+    """:func:`measure_clip` then :func:`summarize`; returns the metrics and the measures (reuse them as the
+    ``original`` of a later result)."""
+    measures = measure_clip(character, mapping, sdf, motion, contacts, params=params)
+    return summarize(measures, original, reference, source_feet, params), measures
+
+
+__all__ = ["LIMBS", "ClipMeasures", "MetricParams", "compute_metrics", "limb_distances", "measure_clip", "summarize"]

@@ -1,0 +1,193 @@
+"""The metrics JSON of a job: pydantic models (the schema), building and writing. Fields: docs/metrics.md."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+SCHEMA_VERSION = "1.0"
+
+
+class Measure(BaseModel):
+    """A quantity on the body itself and on the body scaled to 1.80 m tall, with its unit (``null`` when it
+    cannot be measured, e.g. contact error without contacts)."""
+
+    value: float | None = Field(description="on the character as it is")
+    value_at_180: float | None = Field(description="on the character scaled to 1.80 m tall (papers' convention)")
+    unit: str
+
+
+def measure(value: float | None, factor: float, unit: str, digits: int = 4) -> Measure:
+    """A :class:`Measure` of ``value`` (on the body) whose 1.80 m value is ``value * factor``."""
+    if value is None or not math.isfinite(value):
+        return Measure(value=None, value_at_180=None, unit=unit)
+    return Measure(value=round(value, digits), value_at_180=round(value * factor, digits), unit=unit)
+
+
+class MetricSummary(BaseModel):
+    """One number per metric for a whole clip (definitions in docs/metrics.md)."""
+
+    frames: int
+    fps: float
+    penetration_volume: Measure
+    penetration_max_depth: Measure
+    penetration_mean_depth: Measure
+    penetrating_vertices_percent: float | None
+    penetrating_frames_percent: float | None
+    contact_pairs: int
+    contact_frames: int
+    contact_distance_mean: Measure
+    contact_mse: Measure
+    contact_satisfied_percent: float | None
+    foot_contact_accuracy: float | None
+    foot_skate: Measure
+    foot_contact_frames: int
+    ground_penetration_mean: Measure
+    ground_penetration_max: Measure
+    global_position_error: Measure
+    global_position_mse: Measure
+    mpjpe: Measure
+    m_c: Measure
+    m_i: Measure
+    m_o: Measure
+    acceleration: Measure
+    jerk: Measure
+
+
+class Series(BaseModel):
+    """One value per frame (``null`` where undefined, e.g. no contact in that frame)."""
+
+    unit: str
+    values: list[float | None]
+
+
+class MethodMetrics(BaseModel):
+    """Summary and per-frame series of one motion (``before``: the copy baseline; ``after``: the result)."""
+
+    summary: MetricSummary
+    series: dict[str, Series] = Field(default_factory=dict)
+
+
+class SelfContactEntry(BaseModel):
+    """A (hand, other part) pair found in contact on the source, with how many frames and where."""
+
+    hand: str
+    other: str
+    frames: int
+    first: int
+    last: int
+
+
+class SourceContacts(BaseModel):
+    """What contact detection found on the source motion."""
+
+    self_contacts: int = Field(0, description="detected (frame, hand, other part) contacts")
+    self_contact_frames: int = Field(0, description="frames with at least one hand contact")
+    constraints: int = Field(0, description="vertex pairs transferred to the target (3 per contact)")
+    pairs: list[SelfContactEntry] = Field(default_factory=list)
+    foot_contact_frames: int = Field(0, description="frames where at least one foot joint is planted")
+    source_body: str | None = Field(None, description="the body the source was measured on")
+
+
+class MetricsReport(BaseModel):
+    """The metrics JSON of one job (motion x target)."""
+
+    schema_version: Literal["1.0"] = SCHEMA_VERSION
+    motion: str
+    target: str
+    frames: int
+    fps: float
+    target_height_m: float
+    scale_to_180: float = Field(description="multiply a length on the target by this to get it at 1.80 m")
+    source_contacts: SourceContacts = Field(default_factory=SourceContacts)
+    before: MethodMetrics
+    after: MethodMetrics | None = None
+    improvement: dict[str, float | None] = Field(
+        default_factory=dict, description="after minus before of the main summary numbers at 1.80 m"
+    )
+    timings_s: dict[str, float] = Field(default_factory=dict)
+    notes: list[str] = Field(default_factory=list)
+    context: dict[str, Any] = Field(default_factory=dict, description="pipeline information (mapping, stages, ...)")
+
+
+IMPROVEMENT_FIELDS = (
+    "penetration_volume", "penetration_max_depth", "contact_distance_mean", "foot_skate", "ground_penetration_mean",
+    "m_c",
+)  # fmt: skip
+
+
+def _value_180(summary: MetricSummary, name: str) -> float | None:
+    v = getattr(summary, name)
+    return v.value_at_180 if isinstance(v, Measure) else v
+
+
+def build_metrics_report(
+    motion: str,
+    target: str,
+    target_height_m: float,
+    before: MethodMetrics,
+    after: MethodMetrics | None = None,
+    source_contacts: SourceContacts | None = None,
+    timings_s: dict[str, float] | None = None,
+    notes: list[str] | None = None,
+    context: dict[str, Any] | None = None,
+    include_series: bool = True,
+) -> MetricsReport:
+    """The report of one job; ``improvement`` holds after minus before for the main numbers (negative is better
+    for all of them)."""
+    if not include_series:
+        before = MethodMetrics(summary=before.summary)
+        after = MethodMetrics(summary=after.summary) if after is not None else None
+    improvement: dict[str, float | None] = {}
+    if after is not None:
+        for name in IMPROVEMENT_FIELDS:
+            a, b = _value_180(after.summary, name), _value_180(before.summary, name)
+            improvement[name] = round(a - b, 4) if a is not None and b is not None else None
+    return MetricsReport(
+        motion=motion,
+        target=target,
+        frames=before.summary.frames,
+        fps=before.summary.fps,
+        target_height_m=round(target_height_m, 4),
+        scale_to_180=round(1.80 / target_height_m, 6),
+        source_contacts=source_contacts or SourceContacts(),
+        before=before,
+        after=after,
+        improvement=improvement,
+        timings_s=dict(timings_s or {}),
+        notes=list(notes or []),
+        context=dict(context or {}),
+    )
+
+
+def write_metrics_json(report: MetricsReport, path: str | Path) -> Path:
+    """Write ``report`` as indented JSON (``null`` for missing values); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report.model_dump(mode="json"), indent=1))
+    return path
+
+
+def read_metrics_json(path: str | Path) -> MetricsReport:
+    """Read and validate a metrics JSON."""
+    return MetricsReport.model_validate_json(Path(path).read_text())
+
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "Measure",
+    "MethodMetrics",
+    "MetricSummary",
+    "MetricsReport",
+    "SelfContactEntry",
+    "Series",
+    "SourceContacts",
+    "build_metrics_report",
+    "measure",
+    "read_metrics_json",
+    "write_metrics_json",
+]
