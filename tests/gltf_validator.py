@@ -64,3 +64,18 @@ def assert_valid_glb(path: str | Path, *, max_warnings: int | None = None) -> di
     if max_warnings is not None:
         assert issues["numWarnings"] <= max_warnings, f"{path}: {issues['numWarnings']} validator warning(s):\n{text}"
     return report
+
+
+MANY_SCRIPT = Path(__file__).resolve().parent / "validate_gltf_many.mjs"
+
+
+def validate_many(paths: list[Path], timeout: float = 1800.0) -> dict[str, dict[str, Any]]:
+    """Error/warning counts and the first messages for each file, from one validator process."""
+    node = _node()
+    proc = subprocess.run(
+        [node, str(MANY_SCRIPT), *map(str, paths)], capture_output=True, text=True, timeout=timeout, check=False
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"glTF validator failed (exit {proc.returncode}): {proc.stderr.strip()}")
+    result: dict[str, dict[str, Any]] = json.loads(proc.stdout)
+    return result
