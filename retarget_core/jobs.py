@@ -43,3 +43,5 @@ class JobOutputs:
     summary: dict[str, Any]
     stage_seconds: dict[str, float]
     warnings: list[str]
+    source_glb: Path | None = None
+    """The source motion on the source body (its own mesh, the one given, or a built-in body sized to it)."""

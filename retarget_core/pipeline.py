@@ -51,15 +51,41 @@ class StageClock:
 
 @dataclass
 class Retargeted:
-    """In-memory result of :func:`retarget`: the inputs as read, and the before/after motions on the target."""
+    """In-memory result of :func:`retarget`: the inputs as read, the source body with the source motion on it,
+    and the before/after motions on the target."""
 
     source: LoadedMotion
+    source_body: LoadedCharacter
+    source_view: Motion
     target: LoadedCharacter
     before: Motion
     after: Motion
     stages_run: list[str]
     stages_skipped: list[str]
     warnings: list[str]
+
+
+def source_body(inputs: JobInputs, source: LoadedMotion) -> LoadedCharacter:
+    """The body the source motion is performed by: the one given, the motion file's own mesh, or a built-in
+    body sized to the source skeleton."""
+    if inputs.source_character is not None:
+        return load_character(inputs.source_character)
+    if source.source_character is not None:
+        from retarget_core.mapping import map_joints
+        from retarget_core.normalize import NormalizationReport
+
+        body = source.source_character
+        return LoadedCharacter(body, map_joints(body.skeleton), NormalizationReport(), source.format)
+    from retarget_core.normalize import NormalizationReport
+    from retarget_core.source_body import source_body_for
+
+    body, mapping = source_body_for(source.motion.skeleton, source.mapping)
+    report = NormalizationReport(
+        notes=[
+            f"no source body given: a built-in body {body.height:.2f} m tall, sized to the source's bones, stands in"
+        ]
+    )
+    return LoadedCharacter(body, mapping, report, "builtin", report.notes)
 
 
 def prepare_source(inputs: JobInputs) -> LoadedMotion:
@@ -80,19 +106,23 @@ def retarget(inputs: JobInputs, clock: StageClock | None = None) -> Retargeted:
     with clock.stage("read"):
         source = prepare_source(inputs)
         target = load_character(inputs.target, joint_map_override=opts.target_joint_map_override)
+        body = source_body(inputs, source)
     with clock.stage("copy"):
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
         )
+        source_view = copy_retarget(
+            source.motion, source.mapping, body.character.skeleton, body.mapping, in_place=opts.in_place
+        )
     requested = [s for s in REFINEMENT_STAGES if getattr(opts.stages, s)]
-    warnings = list(source.notes) + list(target.notes)
+    warnings = list(source.notes) + list(target.notes) + list(body.notes)
     if requested:
         warnings.append(
             "refinement stages "
             + ", ".join(requested)
             + " are not available in this version: the result is the copy baseline"
         )
-    return Retargeted(source, target, before, before, ["read", "copy"], requested, warnings)
+    return Retargeted(source, body, source_view, target, before, before, ["read", "copy"], requested, warnings)
 
 
 def run_job(
@@ -112,11 +142,17 @@ def run_job(
     with clock.stage("metrics"):
         metrics = build_metrics(result)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {name: out_dir / name for name in ("result.glb", "before.glb", "metrics.json")}
+    paths = {name: out_dir / name for name in ("result.glb", "before.glb", "source.glb", "metrics.json")}
     with clock.stage("write"):
         character = result.target.character
         write_glb(character, result.after, out_dir / "result.glb.part", clip_name=result.source.motion.name)
         write_glb(character, result.before, out_dir / "before.glb.part", clip_name=result.source.motion.name)
+        write_glb(
+            result.source_body.character,
+            result.source_view,
+            out_dir / "source.glb.part",
+            clip_name=result.source.motion.name,
+        )
         metrics["stage_seconds"] = dict(clock.seconds)
         (out_dir / "metrics.json.part").write_text(json.dumps(metrics, indent=1))
     for name, path in paths.items():
@@ -125,5 +161,5 @@ def run_job(
         progress("done", 1.0)
     return JobOutputs(
         paths["result.glb"], paths["before.glb"], paths["metrics.json"], metrics.get("summary", {}),
-        dict(clock.seconds), result.warnings,
+        dict(clock.seconds), result.warnings, paths["source.glb"],
     )  # fmt: skip
