@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
@@ -13,6 +13,9 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from retarget_core.errors import RetargetError
+
+if TYPE_CHECKING:
+    from retarget_core.pipeline import Retargeted
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Put a human motion onto any skinned character.")
 console = Console(stderr=True)
@@ -75,7 +78,9 @@ def run(
     )
 
 
-def _write_outputs(result, output: Path, before: Path | None, metrics: Path | None, seconds: dict[str, float]) -> None:  # type: ignore[no-untyped-def]
+def _write_outputs(
+    result: Retargeted, output: Path, before: Path | None, metrics: Path | None, seconds: dict[str, float]
+) -> None:
     from retarget_core.io.bvh import write_bvh
     from retarget_core.io.gltf_write import write_glb
     from retarget_core.metrics_summary import build_metrics
@@ -123,7 +128,7 @@ def _guess_kind(file: Path) -> str:
     return "character" if contents.character is not None and not contents.motions else "motion"
 
 
-def _print_info(info: dict) -> None:  # type: ignore[type-arg]
+def _print_info(info: dict[str, Any]) -> None:
     out = Console()
     out.print(f"[bold]{info['name']}[/] ({info['kind']}, {info['format']}), {info['joint_count']} joints")
     if info["kind"] == "motion":

@@ -122,8 +122,11 @@ def load_character(
     if label.startswith(BUILTIN_PREFIX):
         from retarget_core.bodies.presets import load_preset
 
-        character = load_preset(label[len(BUILTIN_PREFIX) :])
-        fmt, notes = "builtin", []
+        try:
+            character = load_preset(label[len(BUILTIN_PREFIX) :])
+        except ValueError as exc:
+            raise RetargetError(str(exc)) from None
+        fmt, notes = "builtin", list[str]()
     else:
         path = Path(path_or_builtin)
         fmt, maybe, _, notes = _read_any(path, None)
