@@ -383,3 +383,26 @@ def test_frontend_is_served_when_built(tmp_path: Path, database_url: str) -> Non
         assert c.get("/healthz").json() == {"status": "ok"}
         assert c.get("/v1/jobs").status_code == 401
         assert "access-control-allow-origin" not in c.get("/healthz", headers={"Origin": "http://x"}).headers
+
+
+def test_make_a_body_from_parameters(api_env: ApiEnv) -> None:
+    from api.queue import TASK_MAKE_BODY
+    from worker.assets import answer
+
+    def handler(kwargs: dict[str, Any]) -> None:
+        if kwargs["params"].get("height", 1.7) > 2.5:
+            answer(api_env.settings, kwargs["call_id"], error="invalid body parameters: height: too tall")
+        else:
+            answer(api_env.settings, kwargs["call_id"], {"sha256": "ab" * 32, "size_bytes": 10,
+                                                         "info": {"height_m": 1.8}, "params": kwargs["params"]})
+
+    api_env.celery.handlers[TASK_MAKE_BODY] = handler
+    h = api_env.key()
+    r = api_env.client.post("/v1/characters/builtin", headers=h, json={"name": "tall", "params": {"height": 1.8}})
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert body["origin"] == "generated" and body["builtin"] is False and body["params"] == {"height": 1.8}
+    assert body["format"] == "glb" and body["info"]["height_m"] == 1.8
+    assert api_env.client.get(f"/v1/characters/{body['id']}", headers=api_env.key("b")).status_code == 404
+    r = api_env.client.post("/v1/characters/builtin", headers=h, json={"params": {"height": 3.0}})
+    assert r.status_code == 422 and r.json()["detail"] == "invalid body parameters: height: too tall"

@@ -83,6 +83,14 @@ class Service:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
 
+    def log_tail(self, lines: int = 40) -> str:
+        """The end of every process log (for assertion messages)."""
+        out = []
+        for path in sorted(self.log_dir.glob("*.log")):
+            text = path.read_text(errors="replace").splitlines()[-lines:]
+            out.append(f"--- {path.name}\n" + "\n".join(text))
+        return "\n".join(out)
+
     def key(self, name: str) -> dict[str, str]:
         with session_scope(self.database_url) as s:
             _, plain = create_key(s, name)

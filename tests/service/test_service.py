@@ -220,6 +220,32 @@ def test_cancel_queued_and_running(alice: Client, uploaded: dict[str, dict[str, 
     assert alice.wait(queued["id"])[-1]["status"] == "succeeded"
 
 
+def test_builtin_and_generated_bodies(alice: Client, uploaded: dict[str, dict[str, Any]], tmp_path: Path) -> None:
+    r = alice.http.post("/v1/characters/builtin", json={"name": "tall heavy",
+                                                        "params": {"height": 1.92, "weight": 0.9, "gender": 1.0}})
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert body["origin"] == "generated" and abs(body["info"]["height_m"] - 1.92) < 0.02
+    (tmp_path / "body.glb").write_bytes(alice.http.get(body["links"]["file"]).content)
+    assert_valid_glb(tmp_path / "body.glb")
+    r = alice.http.post("/v1/characters/builtin", json={"params": {"height": 7}})
+    assert r.status_code == 422 and "height" in r.json()["detail"]
+    job = alice.job(uploaded["clip2"]["id"], body["id"], options={"frame_end": 20})
+    assert alice.wait(job["id"])[-1]["status"] == "succeeded"
+    # built-in presets are listed for everyone and get a downloadable GLB once the io worker has made them
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        builtins = [c for c in alice.http.get("/v1/characters", params={"limit": 100}).json()["items"]
+                    if c["builtin"]]
+        if builtins and all(c["sha256"] for c in builtins):
+            break
+        time.sleep(1)
+    assert {"builtin:male_average", "builtin:female_average"} <= {c["id"] for c in builtins}
+    male = next(c for c in builtins if c["id"] == "builtin:male_average")
+    assert len(male["info"]["joints"]) == 22
+    assert alice.http.get(male["links"]["file"]).content[:4] == b"glTF"
+
+
 def test_key_isolation(service: Service, alice: Client, uploaded: dict[str, dict[str, Any]]) -> None:
     bob = Client(service, service.key("bob"))
     job = alice.job(uploaded["clip"]["id"], uploaded["character"]["id"], options={"frame_end": 10})
@@ -277,7 +303,8 @@ def test_reaper_requeues_the_job_of_a_killed_worker(service: Service, alice: Cli
     first_worker = seen[-1]["worker"]
     service.kill("cpu")  # kill -9 the worker and its pool process mid-job
     service.start_worker("cpu", "cpu")
-    final = alice.wait(job["id"], timeout=240)[-1]
-    assert final["status"] == "succeeded", final
-    assert final["attempt"] == 2 and final["worker"] != first_worker
+    states = alice.wait(job["id"], timeout=240)
+    final = states[-1]
+    assert final["status"] == "succeeded", (final, service.log_tail())
+    assert final["attempt"] == 2 and final["worker"] != first_worker, (states, service.log_tail())
     assert alice.http.get(final["results"]["result_glb"]).status_code == 200
