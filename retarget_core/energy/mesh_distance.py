@@ -15,7 +15,12 @@ from scipy.spatial import cKDTree
 
 
 def closest_point_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distance ``(...)`` from points ``p (..., 3)`` to triangles ``(a, b, c)`` each ``(..., 3)`` (Ericson,
+    """Distance ``(...)`` from points ``p (..., 3)`` to triangles ``(a, b, c)`` each ``(..., 3)``."""
+    return np.linalg.norm(p - closest_point(p, a, b, c), axis=-1)
+
+
+def closest_point(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Closest points ``(..., 3)`` to ``p (..., 3)`` on triangles ``(a, b, c)`` each ``(..., 3)`` (Ericson,
     Real-Time Collision Detection 5.1.5, vectorised; degenerate triangles are handled through their edges)."""
     ab, ac, ap = b - a, c - a, p - a
     d1 = np.einsum("...i,...i->...", ab, ap)
@@ -50,23 +55,23 @@ def closest_point_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
     q = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, q)
     q = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, q)
     q = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, q)
-    dist = np.linalg.norm(p - q, axis=-1)
-    # Degenerate triangles: fall back to the nearest of the three edges.
-    degenerate = ~np.isfinite(dist) | (np.abs(denom) < 1e-30)
+    # Degenerate triangles (no area): the nearest point of the three edges.
+    degenerate = ~np.isfinite(q).all(-1) | (np.abs(denom) < 1e-30)
     if np.any(degenerate):
-        dist = np.where(degenerate, _edge_distance(p, a, b, c), dist)
-    return dist
+        q = np.where(degenerate[..., None], _edge_point(p, a, b, c), q)
+    return q
 
 
-def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _segment_point(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ab = b - a
     t = np.einsum("...i,...i->...", p - a, ab) / np.maximum(np.einsum("...i,...i->...", ab, ab), 1e-30)
-    t = np.clip(t, 0.0, 1.0)
-    return np.linalg.norm(p - (a + ab * t[..., None]), axis=-1)
+    return a + ab * np.clip(t, 0.0, 1.0)[..., None]
 
 
-def _edge_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    return np.minimum(np.minimum(_segment_distance(p, a, b), _segment_distance(p, b, c)), _segment_distance(p, a, c))
+def _edge_point(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    cands = np.stack([_segment_point(p, a, b), _segment_point(p, b, c), _segment_point(p, a, c)])
+    k = np.argmin(np.linalg.norm(cands - p, axis=-1), axis=0)
+    return np.take_along_axis(cands, k[None, ..., None], axis=0)[0]
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -103,7 +108,11 @@ class MeshDistance:
     def query(self, points: np.ndarray, upper: float = np.inf, chunk: int = 65536) -> np.ndarray:
         """Distances ``(P,)`` from ``points (P, 3)`` to the surface; ``inf`` where no surface sample lies within
         ``upper`` (then the distance is more than about ``upper`` minus the sample spacing)."""
-        out = np.full(len(points), np.inf)
+        return np.linalg.norm(points - self.closest(points, upper, chunk), axis=-1)
+
+    def closest(self, points: np.ndarray, upper: float = np.inf, chunk: int = 65536) -> np.ndarray:
+        """Closest surface points ``(P, 3)``; ``inf`` rows where no sample lies within ``upper``."""
+        out = np.full((len(points), 3), np.inf)
         k = min(self.k, self.tree.n)
         for s in range(0, len(points), chunk):
             p = points[s : s + chunk]
@@ -114,9 +123,11 @@ class MeshDistance:
                 continue
             idx = np.where(np.isfinite(dist), idx, idx[:, :1])[found]
             tri = self.vertices[self.faces[self.owner[idx]]]  # (P', k, 3, 3)
-            d = closest_point_distance(p[found][:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
+            pf = p[found]
+            q = closest_point(pf[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])  # (P', k, 3)
+            best = np.argmin(np.linalg.norm(q - pf[:, None, :], axis=-1), axis=1)
             block = out[s : s + chunk]
-            block[found] = d.min(axis=1)
+            block[found] = q[np.arange(len(pf)), best]
         return out
 
 
@@ -125,22 +136,22 @@ def signed_distance_grid(
 ) -> np.ndarray:
     """Signed distance ``shape`` (indexed x, y, z; negative inside) at grid points ``origin + i * voxel`` to the
     closed mesh of ``distance``. Exact (see :class:`MeshDistance`) within ``band_voxels`` of the surface;
-    farther points take the distance of their nearest band point plus the way to it (Euclidean distance
-    transform), an upper bound that is exact when the closest surface point lies straight behind that band
-    point and otherwise off by a fraction of a voxel per voxel of depth only at creases."""
+    farther points use the closest surface point of their nearest band point (Euclidean distance transform),
+    an upper bound that is exact unless the two points' closest surface points differ (medial regions)."""
     from scipy.ndimage import distance_transform_edt
 
     axes = [origin[a] + np.arange(shape[a]) * voxel for a in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    d = distance.query(pts, upper=band_voxels * voxel).reshape(shape)
-    band = np.isfinite(d)
+    cp = distance.closest(pts, upper=band_voxels * voxel)
+    band = np.isfinite(cp[:, 0])
     if not np.any(band):
-        d = distance.query(pts).reshape(shape)
+        cp = distance.closest(pts)
     elif not np.all(band):
-        _, nearest = distance_transform_edt(~band, return_indices=True)
-        ni = tuple(nearest)
-        step = np.sqrt(sum((np.indices(shape)[a] - nearest[a]) ** 2 for a in range(3))) * voxel
-        d = np.where(band, d, d[ni] + step)
+        # Far points take the closest surface point of their nearest band point (closest-point propagation).
+        _, nearest = distance_transform_edt(~band.reshape(shape), return_indices=True)
+        flat = np.ravel_multi_index(tuple(nearest), shape).reshape(-1)
+        cp = np.where(band[:, None], cp, cp[flat])
+    d = np.linalg.norm(pts - cp, axis=-1).reshape(shape)
     inside = inside_grid(origin, voxel, shape, distance.vertices, distance.faces)
     return np.where(inside, -d, d)
 
