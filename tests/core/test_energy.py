@@ -83,7 +83,7 @@ def test_signed_distance_grid_of_a_sphere() -> None:
     band = np.abs(exact) < 3 * voxel
     assert np.abs(sd - exact)[band].max() < 0.005
     assert np.abs(sd - exact)[~band].max() < 0.4 * voxel
-    assert np.all((sd < 0) == (exact < 0) | (np.abs(exact) < 0.004))
+    assert np.all(((sd < 0) == (exact < 0)) | (np.abs(exact) < 0.004))
 
 
 def test_cap_boundary_loops_closes_a_cut_part() -> None:
