@@ -22,7 +22,7 @@ api_key_header = APIKeyHeader(
 
 
 def get_settings_dep(request: Request) -> Settings:
-    return request.app.state.settings  # type: ignore[no-any-return]
+    return request.app.state.settings
 
 
 def get_session(request: Request) -> Iterator[Session]:
@@ -38,11 +38,11 @@ def get_session(request: Request) -> Iterator[Session]:
 
 
 def get_storage(request: Request) -> Storage:
-    return request.app.state.storage  # type: ignore[no-any-return]
+    return request.app.state.storage
 
 
 def get_celery(request: Request) -> Celery:
-    return request.app.state.celery  # type: ignore[no-any-return]
+    return request.app.state.celery
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
@@ -59,6 +59,7 @@ def current_key(session: SessionDep, key: Annotated[str | None, Security(api_key
     row = find_key(session, key)
     if row is None:
         raise HTTPException(401, "unknown or revoked API key", headers={"WWW-Authenticate": "X-API-Key"})
+    session.commit()  # end the read: a long upload must not hold a database connection in a transaction
     return row
 
 

@@ -11,7 +11,7 @@ from celery import Celery
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from api.db import utcnow
+from api.db import updated, utcnow
 from api.models import Job, WebhookDelivery
 from api.queue import TASK_DELIVER_WEBHOOK, TASK_RUN_JOB
 
@@ -54,10 +54,10 @@ def cancel(session: Session, job: Job, reason: str = "canceled by the client") -
     """Cancel a queued job at once, or ask a running one to stop. Returns 'canceled', 'requested' or 'finished'."""
     now = utcnow()
     if job.status == "queued":
-        done = session.execute(
+        done = updated(session,
             update(Job).where(Job.id == job.id, Job.attempt == job.attempt, Job.status == "queued")
             .values(status="canceled", message=reason, finished_at=now, updated_at=now, cancel_requested=True)
-        ).rowcount
+        )
         if done:
             session.refresh(job)
             return "canceled"
@@ -75,12 +75,12 @@ def cancel(session: Session, job: Job, reason: str = "canceled by the client") -
 def retry(session: Session, job: Job) -> bool:
     """Queue a failed or canceled job again as a new attempt; False when its state does not allow it."""
     now = utcnow()
-    done = session.execute(
+    done = updated(session,
         update(Job)
         .where(Job.id == job.id, Job.attempt == job.attempt, Job.status.in_(("failed", "canceled")))
         .values(status="queued", attempt=job.attempt + 1, stage=None, progress=0.0, message=None, error_kind=None,
                 cancel_requested=False, worker=None, started_at=None, heartbeat_at=None, finished_at=None,
                 outputs=None, summary=None, stage_seconds=None, warnings=None, sent_at=now, updated_at=now)
-    ).rowcount
+    )
     session.refresh(job)
     return bool(done)

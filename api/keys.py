@@ -43,12 +43,12 @@ def main(argv: list[str] | None = None) -> int:
                 state = f"revoked {row.revoked_at:%Y-%m-%d}" if row.revoked_at else "active"
                 print(f"{row.id}  {row.key_prefix}...  {row.name!r}  created {row.created_at:%Y-%m-%d %H:%M}  {state}")
         else:
-            row = session.get(ApiKey, args.key_id)
-            if row is None:
+            found = session.get(ApiKey, args.key_id)
+            if found is None:
                 print(f"no key with id {args.key_id}")
                 return 1
-            row.revoked_at = utcnow()
-            print(f"revoked {row.id} ({row.name})")
+            found.revoked_at = utcnow()
+            print(f"revoked {found.id} ({found.name})")
     return 0
 
 

@@ -30,7 +30,7 @@ Webhooks: when a job ends, its `callback_url` receives a POST with the job as JS
 class SPAStaticFiles(StaticFiles):
     """Static files that answer index.html for unknown paths without a file extension (client-side routes)."""
 
-    async def get_response(self, path: str, scope: Scope):  # type: ignore[no-untyped-def]
+    async def get_response(self, path: str, scope: Scope):
         try:
             return await super().get_response(path, scope)
         except StarletteHTTPException as exc:

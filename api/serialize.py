@@ -37,10 +37,10 @@ def asset_out(asset: Asset, base: str = "") -> AssetOut:
         links["file"] = f"{self_url}/file"
     return AssetOut(
         id=asset.id,
-        kind=asset.kind,  # type: ignore[arg-type]
+        kind=asset.kind,
         name=asset.name,
         builtin=asset.origin == "builtin",
-        origin=asset.origin,  # type: ignore[arg-type]
+        origin=asset.origin,
         filename=asset.filename,
         format=asset.format,
         size_bytes=asset.size_bytes,
@@ -75,18 +75,18 @@ def job_out(job: Job, delivery: WebhookDelivery | None = None, base: str = "") -
     if delivery is not None:
         webhook = WebhookState(
             event=delivery.event,
-            status=delivery.status,  # type: ignore[arg-type]
+            status=delivery.status,
             attempts=delivery.attempts,
             last_status_code=delivery.last_status_code,
             last_error=delivery.last_error,
         )
     return JobOut(
         id=job.id,
-        status=job.status,  # type: ignore[arg-type]
+        status=job.status,
         stage=job.stage,
         progress=min(1.0, max(0.0, job.progress or 0.0)),
         message=job.message,
-        error_kind=job.error_kind,  # type: ignore[arg-type]
+        error_kind=job.error_kind,
         cancel_requested=job.cancel_requested,
         attempt=job.attempt,
         batch_id=job.batch_id,
@@ -135,7 +135,7 @@ def batch_out(batch: Batch, jobs: Sequence[Job], deliveries: dict[str, WebhookDe
         id=batch.id,
         name=batch.name,
         created_at=batch.created_at,
-        status=batch_status(statuses),  # type: ignore[arg-type]
+        status=batch_status(statuses),
         total=len(jobs),
         counts=counts,
         progress=progress,

@@ -58,7 +58,7 @@ class Channel(kombu_sqla.Channel):
             return engine
         return create_engine(url, **options)
 
-    def _get(self, queue: str) -> Any:
+    def _get(self, queue: str, timeout: Any = None) -> Any:
         obj = self._get_or_create(queue)
         if self.session.bind.name == "sqlite":
             self.session.execute(text("BEGIN IMMEDIATE TRANSACTION"))

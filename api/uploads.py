@@ -173,7 +173,7 @@ async def _receive_multipart(
         else:
             buf = state["data"]
             buf += data[start:end]  # type: ignore[operator]
-            if len(buf) > MAX_FIELD_BYTES:  # type: ignore[arg-type]
+            if len(buf) > MAX_FIELD_BYTES:
                 raise UploadError(400, f"form field {state['name']!r} is longer than {MAX_FIELD_BYTES} bytes")
 
     def on_part_end() -> None:

@@ -52,7 +52,7 @@ def inspect_blob(settings: Settings, ref: str, kind: str, label: str | None) -> 
     info.setdefault("format", ref.rsplit(".", 1)[1])
     if str(info.get("name", "")).startswith(ref.split(".", 1)[0]):  # named after the blob file
         info["name"] = Path(label).stem if label else None
-    return json_safe(info)  # type: ignore[no-any-return]
+    return json_safe(info)
 
 
 def run_inspect(settings: Settings, call_id: str, ref: str, kind: str, label: str | None) -> None:
@@ -156,10 +156,10 @@ def register_builtins(settings: Settings) -> list[str]:
     for name in names:
         asset_id = f"builtin:{name}"
         with session_scope(url) as s:
-            asset = s.get(Asset, asset_id)
-            if asset is None:
+            row = s.get(Asset, asset_id)
+            if row is None:
                 continue
-            if asset.sha256 and asset.format and storage.blob_path(storage.blob_ref(asset.sha256, asset.format)).is_file():
+            if row.sha256 and row.format and storage.blob_path(storage.blob_ref(row.sha256, row.format)).is_file():
                 continue
         tmp = storage.temp_path(".glb")
         try:
@@ -173,9 +173,9 @@ def register_builtins(settings: Settings) -> list[str]:
             tmp.unlink(missing_ok=True)
         info["preset"] = name
         with session_scope(url) as s:
-            asset = s.get(Asset, asset_id)
-            if asset is not None:
-                asset.sha256, asset.format, asset.size_bytes = sha, "glb", size
-                asset.filename = f"{name}.glb"
-                asset.info = info
+            row = s.get(Asset, asset_id)
+            if row is not None:
+                row.sha256, row.format, row.size_bytes = sha, "glb", size
+                row.filename = f"{name}.glb"
+                row.info = info
     return names

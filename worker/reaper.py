@@ -20,7 +20,7 @@ from datetime import timedelta
 from celery import Celery
 from sqlalchemy import delete, or_, select, update
 
-from api.db import session_scope, utcnow
+from api.db import session_scope, updated, utcnow
 from api.joblife import queue_webhook, send_job, send_webhook
 from api.models import Job, WebhookDelivery, WorkerCall, WorkerProcess
 from api.settings import Settings
@@ -71,16 +71,16 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
             else:
                 # read before the UPDATE: the ORM synchronises the loaded object with it
                 job_id, nxt, queue, worker, last = job.id, job.attempt + 1, job.queue, job.worker, job.heartbeat_at
-                n = s.execute(update(Job).where(*mine).values(
+                n = updated(s, update(Job).where(*mine).values(
                     status="queued", attempt=nxt, stage=None, progress=0.0, worker=None,
-                    started_at=None, heartbeat_at=None, sent_at=now, updated_at=now)).rowcount
+                    started_at=None, heartbeat_at=None, sent_at=now, updated_at=now))
                 if n:
                     report.requeued.append(job_id)
                     to_send.append((job_id, nxt, queue))
                     log.warning("job %s: worker %s silent since %s; queued again as attempt %s",
                                 job_id, worker, last, nxt)
                 continue
-            n = s.execute(update(Job).where(*mine).values(finished_at=now, updated_at=now, **values)).rowcount
+            n = updated(s, update(Job).where(*mine).values(finished_at=now, updated_at=now, **values))
             if n:
                 bucket.append(job.id)
                 s.refresh(job)
@@ -94,8 +94,8 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
         )).all()
         for job in waiting:
             job_id, attempt, queue = job.id, job.attempt, job.queue
-            n = s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.status == "queued")
-                          .values(sent_at=now)).rowcount
+            n = updated(s, update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.status == "queued")
+                          .values(sent_at=now))
             if n:
                 report.resent.append(job_id)
                 to_send.append((job_id, attempt, queue))
@@ -117,8 +117,8 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
 
     for job_id, attempt, queue in to_send:
         send_job(celery, job_id, attempt, queue)
-    for d in deliveries:
-        send_webhook(celery, d)
+    for delivery_id in deliveries:
+        send_webhook(celery, delivery_id)
     for d_id, attempt in webhook_sends:
         send_webhook(celery, d_id, attempt)
     return report

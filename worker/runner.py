@@ -18,7 +18,7 @@ from typing import Any
 
 from sqlalchemy import select, update
 
-from api.db import session_scope, utcnow
+from api.db import session_scope, updated, utcnow
 from api.joblife import queue_webhook
 from api.models import Job
 from api.settings import Settings
@@ -79,19 +79,19 @@ class JobRun:
         """queued -> running for this attempt; False when the row is not queued at this attempt."""
         now = utcnow()
         with session_scope(self.url) as s:
-            n = s.execute(
+            n = updated(s,
                 update(Job)
                 .where(Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "queued")
                 .values(status="running", stage="starting", progress=0.0, worker=self.hostname, started_at=now,
                         heartbeat_at=now, updated_at=now)
-            ).rowcount
+            )
         return n == 1
 
     def beat(self) -> None:
         """Refresh the heartbeat; notice a cancel request or a lost job."""
         now = utcnow()
         with session_scope(self.url) as s:
-            n = s.execute(update(Job).where(*self._mine()).values(heartbeat_at=now)).rowcount
+            n = updated(s, update(Job).where(*self._mine()).values(heartbeat_at=now))
             if n == 0:
                 self.lost_event.set()
                 self.cancel_event.set()
@@ -109,8 +109,8 @@ class JobRun:
         self._last_progress_write = now
         frac = min(1.0, max(0.0, float(fraction))) if math.isfinite(fraction) else 0.0
         with session_scope(self.url) as s:
-            n = s.execute(update(Job).where(*self._mine()).values(stage=stage[:64], progress=frac,
-                                                                  updated_at=utcnow())).rowcount
+            n = updated(s, update(Job).where(*self._mine()).values(stage=stage[:64], progress=frac,
+                                                                  updated_at=utcnow()))
         if n == 0:
             self.lost_event.set()
             self.cancel_event.set()
@@ -136,10 +136,10 @@ class JobRun:
         """Record the end of this run; queue the webhook in the same transaction."""
         now = utcnow()
         with session_scope(self.url) as s:
-            n = s.execute(
+            n = updated(s,
                 update(Job).where(*self._mine())
                 .values(status=status, finished_at=now, updated_at=now, heartbeat_at=now, **values)
-            ).rowcount
+            )
             if n == 0:
                 return RunResult("lost")
             job = s.get(Job, self.job_id)
@@ -198,7 +198,9 @@ class JobRun:
         out_dir = self.storage.job_run_dir(self.job_id, self.attempt)
         try:
             if pipeline is None:
-                from retarget_core.pipeline import run_job as pipeline
+                from retarget_core.pipeline import run_job
+
+                pipeline = run_job
             outputs = pipeline(inputs, out_dir, progress=self.progress, should_cancel=self.should_cancel)
         except JobCanceled:
             if self.lost_event.is_set():

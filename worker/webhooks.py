@@ -16,7 +16,7 @@ from typing import Any
 import httpx
 from sqlalchemy import select, update
 
-from api.db import session_scope, utcnow
+from api.db import session_scope, updated, utcnow
 from api.models import ApiKey, Job, WebhookDelivery
 from api.security import SIGNATURE_HEADER, sign_payload
 from api.serialize import webhook_payload
@@ -36,12 +36,12 @@ def deliver(settings: Settings, delivery_id: str, attempt: int,
     ``delivered``, ``retry``, ``failed`` or ``skipped`` (not this attempt's turn)."""
     url = settings.resolved_database_url
     with session_scope(url) as s:
-        claimed = s.execute(
+        claimed = updated(s,
             update(WebhookDelivery)
             .where(WebhookDelivery.id == delivery_id, WebhookDelivery.status == "pending",
                    WebhookDelivery.attempts == attempt - 1)
             .values(attempts=attempt)
-        ).rowcount
+        )
         if not claimed:
             return "skipped", None
         d = s.get(WebhookDelivery, delivery_id)

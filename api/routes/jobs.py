@@ -182,7 +182,7 @@ def _result(job_id: str, name: str, session: Session, key: ApiKey, storage: Stor
     return FileResponse(path, media_type=RESULT_FILES[name][1], filename=f"{job_id}-{name}")
 
 
-_GLB = {200: {"content": {"model/gltf-binary": {}}, "description": "Binary glTF"},
+_GLB: dict[int | str, dict[str, Any]] = {200: {"content": {"model/gltf-binary": {}}, "description": "Binary glTF"},
         404: {"model": ErrorOut}, 409: {"model": ErrorOut, "description": "The job has not succeeded"}}
 
 
