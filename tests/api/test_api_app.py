@@ -179,6 +179,12 @@ def test_one_key_never_sees_another_keys_resources(api_env: ApiEnv) -> None:
     assert api_env.client.get("/v1/motions", headers=b).json()["total"] == 0
     r = api_env.client.post("/v1/jobs", json={"motion_id": motion, "target_character_id": character}, headers=b)
     assert r.status_code == 422 and "motion_id" in r.json()["detail"]
+    batch = api_env.client.post("/v1/batches", json={"motion_ids": [motion], "target_character_ids": [character]},
+                                headers=a).json()
+    assert api_env.client.get(f"/v1/batches/{batch['id']}", headers=b).status_code == 404
+    assert api_env.client.post(f"/v1/batches/{batch['id']}/cancel", headers=b).status_code == 404
+    assert api_env.client.get("/v1/batches", headers=b).json()["total"] == 0
+    assert api_env.client.get("/v1/jobs", headers=b, params={"batch_id": batch["id"]}).json()["total"] == 0
 
 
 # Jobs -------------------------------------------------------------------------------------------------------

@@ -140,3 +140,27 @@ def test_embedded_broker_delivers_and_deletes(tmp_path: Path) -> None:
 
     rows = sqlite3.connect(tmp_path / "b.sqlite").execute("select count(*) from kombu_message").fetchone()[0]
     assert rows == 0
+
+
+def test_the_api_imports_neither_torch_nor_the_worker() -> None:
+    code = ("import sys, api.main, api.serve, api.keys, api.migrate; api.main.create_app; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'worker', 'scipy', 'trimesh') "
+            "or m in ('retarget_core.pipeline', 'retarget_core.loading', 'retarget_core.character')); "
+            "print(bad); sys.exit(1 if bad else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_celery_reliability_settings(tmp_path: Path) -> None:
+    from api.queue import IO_QUEUE, TASK_INSPECT, TASK_RUN_JOB, make_celery
+
+    s = Settings(data_dir=tmp_path, redis_url="redis://127.0.0.1:6379/9", job_soft_time_limit_seconds=100,
+                 job_hard_time_limit_seconds=120)
+    conf = make_celery(s).conf
+    assert conf.task_acks_late and conf.task_reject_on_worker_lost and conf.worker_prefetch_multiplier == 1
+    assert (conf.task_soft_time_limit, conf.task_time_limit) == (100, 120)
+    assert {q.name for q in conf.task_queues} == {"cpu", "gpu", IO_QUEUE}
+    assert conf.task_routes[TASK_INSPECT]["queue"] == IO_QUEUE and TASK_RUN_JOB not in conf.task_routes
+    assert conf.broker_transport_options["visibility_timeout"] > 120  # never re-delivered while it may still run
+    embedded = make_celery(Settings(data_dir=tmp_path)).conf
+    assert embedded.broker_url.startswith("retarget-sqla+sqlite:") and not embedded.worker_enable_remote_control
