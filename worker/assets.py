@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 
 from api.db import session_scope, utcnow
 from api.models import Asset, WorkerCall
@@ -149,10 +150,15 @@ def register_builtins(settings: Settings) -> list[str]:
         for asset_id, asset in existing.items():
             if asset_id.removeprefix("builtin:") not in names:
                 s.delete(asset)
-        for name in names:
-            if f"builtin:{name}" not in existing:
+    for name in names:
+        if f"builtin:{name}" in existing:
+            continue
+        try:
+            with session_scope(url) as s:
                 s.add(Asset(id=f"builtin:{name}", kind="character", owner_id=None, origin="builtin", name=name,
                             params={"preset": name}, info={"preset": name}))
+        except IntegrityError:  # another io worker registered it at the same time
+            pass
     for name in names:
         asset_id = f"builtin:{name}"
         with session_scope(url) as s:
