@@ -158,7 +158,8 @@ def test_job_progress_results_and_signed_webhook(alice: Client, uploaded: dict[s
         assert {"read", "write"} & stages, stages
         assert final["timings"]["run_seconds"] > 0 and "copy" in final["timings"]["stages"]
 
-        for key, name in (("result_glb", "result.glb"), ("before_glb", "before.glb")):
+        assert set(final["results"]) == {"result_glb", "before_glb", "metrics_json", "source_glb"}
+        for key, name in (("result_glb", "result.glb"), ("before_glb", "before.glb"), ("source_glb", "source.glb")):
             r = alice.http.get(final["results"][key])
             assert r.status_code == 200 and r.headers["content-type"] == "model/gltf-binary"
             assert f'filename="{job["id"]}-{name}"' in r.headers["content-disposition"]
