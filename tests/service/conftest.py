@@ -1,15 +1,46 @@
-"""The ``service`` fixture: real Redis, real worker processes and the API under uvicorn (see service_harness)."""
+"""The ``service`` fixture: real Redis, real worker processes and the API under uvicorn (see service_harness).
+
+The database is a throw-away PostgreSQL database when the server at RETARGET_TEST_PG_ADMIN (default
+postgresql://postgres@127.0.0.1:5432/test) answers, as in docker-compose, and a SQLite file otherwise (the
+embedded mode's test covers SQLite end to end). RETARGET_SERVICE_TEST_DB=sqlite|postgresql forces one.
+"""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+import secrets
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 from service_harness import LOCK_KEY, REDIS_HOST, REDIS_PORT, REPO, Service, claim_redis_db, free_port
 
 from api.db import dispose_all
 from api.migrate import upgrade
+
+PG_ADMIN_URL = os.environ.get("RETARGET_TEST_PG_ADMIN", "postgresql://postgres@127.0.0.1:5432/test")
+
+
+def choose_database(root: Path) -> tuple[str, Callable[[], None] | None]:
+    """A database URL for the service, and how to drop it (None for SQLite)."""
+    wanted = os.environ.get("RETARGET_SERVICE_TEST_DB", "auto")
+    if wanted != "sqlite":
+        try:
+            import psycopg
+
+            name = f"retarget_service_test_{secrets.token_hex(4)}"
+            with psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=2) as conn:
+                conn.execute(f'CREATE DATABASE "{name}"')
+
+            def drop() -> None:
+                with psycopg.connect(PG_ADMIN_URL, autocommit=True) as conn:
+                    conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+            return PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}", drop
+        except Exception as exc:
+            if wanted == "postgresql":
+                pytest.fail(f"RETARGET_SERVICE_TEST_DB=postgresql but PostgreSQL is not usable: {exc}")
+    return f"sqlite:///{root / 'service.sqlite'}", None
 
 
 @pytest.fixture(scope="session")
@@ -27,7 +58,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     root = tmp_path_factory.mktemp("service")
     data_dir, log_dir = root / "data", root / "logs"
     log_dir.mkdir()
-    database_url = f"sqlite:///{root / 'service.sqlite'}"
+    database_url, drop_database = choose_database(root)
     upgrade(database_url)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
@@ -57,3 +88,5 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         svc.stop_all()
         dispose_all()
         r.flushdb()
+        if drop_database is not None:
+            drop_database()
