@@ -1,0 +1,354 @@
+/**
+ * The review viewer of one job: source | before | after side by side on one frame-locked timeline, linked
+ * cameras, skeleton overlay, contact markers, penetration highlights, per-frame charts with a playhead, summary
+ * numbers before | after, downloads. While the job runs, its live progress; the viewer opens when it succeeds.
+ *
+ * Test hook: window.__viewer (frame, frames, views' frames, seek/play/pause) and data attributes on the views
+ * (data-frame, data-loaded, data-renders) and charts (data-has-data, data-points, data-playhead).
+ */
+import { Vector3 } from 'three';
+import { api, download, fetchBytes, ApiError } from '../api.js';
+import { esc, formatNumber } from '../format.js';
+import { activePairs, readMetrics } from '../metrics.js';
+import { shareUrl } from '../router.js';
+import { Chart, COLORS } from '../viewer/charts.js';
+import { bindKeys, mountControls } from '../viewer/controls.js';
+import { cloneGltf, parseGltf, sameBytes } from '../viewer/loadglb.js';
+import { ModelView } from '../viewer/modelview.js';
+import { Timeline } from '../viewer/timeline.js';
+import { jobProgressHtml, jobTitle } from './jobs_common.js';
+import { loadNames } from '../names.js';
+
+const VIEWS = [
+  { name: 'source', title: 'Source', sub: 'the motion on its source body', file: 'source.glb', link: 'source_glb' },
+  { name: 'before', title: 'Before', sub: 'plain copy (baseline)', file: 'before.glb', link: 'before_glb' },
+  { name: 'after', title: 'After', sub: 'our result', file: 'result.glb', link: 'result_glb' },
+];
+const DOWNLOADS = [
+  ['result_glb', 'result.glb'], ['before_glb', 'before.glb'], ['source_glb', 'source.glb'], ['metrics_json', 'metrics.json'],
+];
+const CONTACT_COLOR = 0xff4f7a;
+const FOOT_COLOR = 0x3ddc84;
+
+/** Mount the page; returns its cleanup. */
+export function mountReview(root, jobId) {
+  const state = { alive: true, cleanups: [], timer: null };
+  root.innerHTML = `<section class="review" data-job="${esc(jobId)}">
+    <header class="review-head"><div class="review-title"><h1>Job <code>${esc(jobId)}</code></h1><span class="review-sub"></span></div>
+      <div class="review-actions"></div></header>
+    <div class="review-body"><div class="loading">Loading job…</div></div>
+  </section>`;
+  const body = root.querySelector('.review-body');
+  const sub = root.querySelector('.review-sub');
+  const actions = root.querySelector('.review-actions');
+
+  const poll = async () => {
+    if (!state.alive) return;
+    let job;
+    try {
+      job = await api(`/v1/jobs/${encodeURIComponent(jobId)}`);
+    } catch (e) {
+      body.innerHTML = `<div class="error-box">Cannot load the job: ${esc(e.message)}</div>`;
+      if (!(e instanceof ApiError) || e.status === 0 || e.status >= 500) state.timer = setTimeout(poll, 3000);
+      return;
+    }
+    if (!state.alive) return;
+    const names = await loadNames([job.motion_id], [job.target_character_id]);
+    sub.textContent = jobTitle(job, names);
+    if (job.status === 'succeeded') {
+      await openViewer(job);
+      return;
+    }
+    body.innerHTML = `<div class="job-live">${jobProgressHtml(job)}</div>`;
+    if (job.status === 'queued' || job.status === 'running') state.timer = setTimeout(poll, 1000);
+  };
+
+  const openViewer = async (job) => {
+    renderActions(actions, job);
+    body.innerHTML = `<div class="review-grid">
+      <div class="review-main">
+        <div class="views">${VIEWS.map((v) => `<figure class="view" data-view="${v.name}">
+          <figcaption><b>${v.title}</b> <span>${v.sub}</span><span class="view-frame"></span></figcaption>
+          <div class="view-box"><div class="view-status">loading…</div></div></figure>`).join('')}</div>
+        <div class="controls-bar"></div>
+      </div>
+      <aside class="review-side">
+        <div class="charts"><div class="charts-legend"><span style="color:${COLORS.before}">━ before</span> <span style="color:${COLORS.after}">━ after</span> <span class="hint">click a chart to jump to a frame</span></div></div>
+        <div class="side-col"><div class="summary"></div><div class="notes"></div></div>
+      </aside></div>`;
+    const results = job.results || {};
+    const metricsP = results.metrics_json
+      ? fetchBytes(results.metrics_json).then((b) => JSON.parse(new TextDecoder().decode(b))).catch(() => null)
+      : Promise.resolve(null);
+    const bytes = await Promise.all(VIEWS.map((v) => (results[v.link]
+      ? fetchBytes(results[v.link]).catch((e) => ({ error: e.message }))
+      : Promise.resolve(null))));
+    const report = await metricsP;
+    if (!state.alive) return;
+    const metrics = readMetrics(report);
+    const cleanup = await buildViewer(body, job, VIEWS.map((v, i) => ({ ...v, bytes: bytes[i] })), metrics);
+    if (state.alive) state.cleanups.push(cleanup);
+    else cleanup();
+  };
+
+  poll();
+  return () => {
+    state.alive = false;
+    clearTimeout(state.timer);
+    for (const c of state.cleanups) c?.();
+  };
+}
+
+function renderActions(el, job) {
+  const r = job.results || {};
+  el.innerHTML = `${DOWNLOADS.filter(([k]) => r[k]).map(([k, f]) => `<button type="button" class="btn small" data-dl="${k}" data-file="${f}">⤓ ${f}</button>`).join('')}
+    <button type="button" class="btn small ghost" data-act="share" title="Copy a link to this review (it does not contain your API key)">Copy review link</button>
+    <span class="share-note"></span>`;
+  for (const b of el.querySelectorAll('[data-dl]')) {
+    b.onclick = async () => {
+      b.disabled = true;
+      try { await download(r[b.dataset.dl], `${job.id}-${b.dataset.file}`); } catch (e) { alert(`Download failed: ${e.message}`); }
+      b.disabled = false;
+    };
+  }
+  el.querySelector('[data-act=share]').onclick = async () => {
+    const url = shareUrl(window.location, job.id);
+    const note = el.querySelector('.share-note');
+    try { await navigator.clipboard.writeText(url); note.textContent = 'link copied'; } catch { note.textContent = url; }
+    note.dataset.url = url;
+  };
+}
+
+/** Build the three views, timeline, charts and summary; returns a cleanup. */
+async function buildViewer(body, job, views, metrics) {
+  const timeline = new Timeline(metrics.frames || 1, metrics.fps || 30);
+  const mv = {};
+  const loaded = [];
+  const parsed = [];
+  for (const v of views) {
+    const fig = body.querySelector(`.view[data-view="${v.name}"]`);
+    const box = fig.querySelector('.view-box');
+    const status = box.querySelector('.view-status');
+    if (!v.bytes || v.bytes.error) {
+      status.textContent = v.bytes?.error
+        ? `could not load ${v.file}: ${v.bytes.error}`
+        : v.name === 'source' ? 'no source view for this job (the service did not write source.glb)' : `no ${v.file} for this job`;
+      fig.dataset.loaded = 'false';
+      fig.classList.add('missing');
+      continue;
+    }
+    const twin = parsed.find((p) => sameBytes(p.bytes, v.bytes));
+    let gltf;
+    try {
+      gltf = twin ? cloneGltf(twin.gltf) : await parseGltf(v.bytes);
+    } catch (e) {
+      status.textContent = `${v.file} could not be read: ${e.message}`;
+      fig.dataset.loaded = 'false';
+      continue;
+    }
+    if (!twin) parsed.push({ bytes: v.bytes, gltf });
+    status.remove();
+    const view = new ModelView(box, { name: v.name });
+    fig.dataset.view = v.name;
+    const timing = view.setModel(gltf);
+    mv[v.name] = { view, fig, timing };
+    loaded.push(view);
+  }
+  // The timeline: the metrics' frame count when known, else the longest clip.
+  const timings = Object.values(mv).map((m) => m.timing).filter(Boolean);
+  if (timings.length) {
+    const frames = metrics.frames || Math.max(...timings.map((t) => t.frames));
+    const fps = metrics.fps || (mv.after?.timing ?? timings[0]).fps;
+    timeline.setLength(frames, fps);
+  }
+  // One camera framing for all: the union of the motion's bounds in every view; following the root, the union
+  // of the root-relative bounds (a tighter view that stays on the character).
+  const opts = { skeleton: false, contacts: true, penetration: true, linked: true, follow: true };
+  const bounds = loaded.map((v) => v.motionBounds());
+  const frameAll = () => {
+    if (!loaded.length) return;
+    const box = bounds[0][opts.follow ? 'local' : 'world'].clone();
+    for (const b of bounds.slice(1)) box.union(b[opts.follow ? 'local' : 'world']);
+    for (const v of loaded) {
+      v.followOffset = null;
+      v.frameBox(box);
+      if (opts.follow) {
+        // frameBox aimed at the root-relative box around the origin: move each view onto its own character.
+        const root = v.rootPosition(new Vector3());
+        root.y = 0;
+        v.controls.target.add(root);
+        v.camera.position.add(root);
+        v.follow(true);
+      }
+    }
+  };
+  frameAll();
+  // Linked cameras: any view's orbit moves the others.
+  let syncing = false;
+  for (const v of loaded) {
+    v.controls.addEventListener('change', () => {
+      v.dirty = true;
+      if (!opts.linked || syncing) return;
+      syncing = true;
+      for (const o of loaded) if (o !== v) o.copyCamera(v, opts.follow);
+      syncing = false;
+    });
+    v.controls.addEventListener('end', () => { if (opts.follow) for (const o of loaded) { o.followOffset = null; o.follow(true); } });
+  }
+  // Charts.
+  const chartsEl = body.querySelector('.charts');
+  const charts = metrics.charts.map((c) => {
+    const box = document.createElement('div');
+    chartsEl.appendChild(box);
+    return new Chart(box, c, timeline);
+  });
+  if (!metrics.hasSeries) {
+    const p = document.createElement('p');
+    p.className = 'no-data';
+    p.dataset.noSeries = 'true';
+    p.textContent = metrics.schema
+      ? `No per-frame data for this job (metrics schema ${metrics.schema} has no series).`
+      : 'No metrics for this job.';
+    chartsEl.appendChild(p);
+  }
+  renderSummary(body.querySelector('.summary'), metrics, job);
+  renderNotes(body.querySelector('.notes'), job, metrics);
+
+  const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
+  const hasContacts = Boolean(metrics.contacts.pairs.length || metrics.contacts.vertexPairs
+    || Object.keys(metrics.contacts.feet.before).length || Object.keys(metrics.contacts.feet.after).length);
+  const applyFrame = (f) => {
+    for (const m of Object.values(mv)) {
+      m.view.setFrame(f);
+      m.view.follow(opts.follow);
+      m.fig.querySelector('.view-frame').textContent = `frame ${m.view.frame}`;
+    }
+    updateOverlays(mv, metrics, f, opts);
+    for (const c of charts) c.draw(f);
+  };
+  const updateControls = mountControls(body.querySelector('.controls-bar'), timeline, [
+    { id: 'skeleton', label: 'Skeleton', checked: opts.skeleton, title: 'Draw the bones over the meshes', onChange: (on) => { opts.skeleton = on; for (const v of loaded) v.setSkeleton(on); } },
+    { id: 'contacts', label: 'Contacts', checked: opts.contacts && hasContacts, disabled: !hasContacts, title: hasContacts ? 'Markers on detected hand and foot contacts' : 'no contact data for this job', onChange: (on) => { opts.contacts = on; applyFrame(timeline.frame); } },
+    { id: 'penetration', label: 'Penetration', checked: opts.penetration && hasPen, disabled: !hasPen, title: hasPen ? 'Penetrating vertices in red' : 'no penetration data for this job', onChange: (on) => { opts.penetration = on; applyFrame(timeline.frame); } },
+    { id: 'follow', label: 'Follow', checked: opts.follow, title: 'Cameras follow each character (off: one fixed camera over the whole motion)', onChange: (on) => { opts.follow = on; timeline.pause(); frameAll(); applyFrame(timeline.frame); } },
+    { id: 'linked', label: 'Link cameras', checked: opts.linked, title: 'Orbit all views together', onChange: (on) => { opts.linked = on; if (on && loaded.length) for (const o of loaded.slice(1)) o.copyCamera(loaded[0], opts.follow); } },
+  ]);
+  timeline.on((f) => { applyFrame(f); updateControls(); });
+  applyFrame(0);
+  const unbindKeys = bindKeys(timeline);
+
+  let raf = 0;
+  const loop = (now) => {
+    timeline.tick(now);
+    for (const v of loaded) v.render();
+    raf = requestAnimationFrame(loop);
+  };
+  raf = requestAnimationFrame(loop);
+
+  window.__viewer = {
+    jobId: job.id,
+    timeline,
+    get frame() { return timeline.frame; },
+    get frames() { return timeline.frames; },
+    get fps() { return timeline.fps; },
+    get playing() { return timeline.playing; },
+    views() {
+      const out = {};
+      for (const v of VIEWS) {
+        const m = mv[v.name];
+        out[v.name] = m ? { loaded: true, frame: m.view.frame, renders: m.view.renders } : { loaded: false };
+      }
+      return out;
+    },
+    charts() {
+      return charts.map((c) => ({ id: c.data.id, hasData: c.hasData, points: Number(c.container.dataset.points), playhead: c.frame }));
+    },
+    seek(f) { timeline.pause(); timeline.seek(f); },
+    play() { timeline.play(); },
+    pause() { timeline.pause(); },
+    ready: true,
+  };
+  body.querySelector('.review-grid').dataset.ready = 'true';
+
+  return () => {
+    cancelAnimationFrame(raf);
+    unbindKeys();
+    timeline.pause();
+    for (const c of charts) c.dispose();
+    for (const v of loaded) v.dispose();
+    if (window.__viewer?.timeline === timeline) delete window.__viewer;
+  };
+}
+
+/** Contact markers and penetration highlights of frame `f` in every view. */
+function updateOverlays(mv, metrics, f, opts) {
+  const { contacts, mapping, penetration } = metrics;
+  for (const [name, m] of Object.entries(mv)) {
+    const view = m.view;
+    const points = [];
+    const lines = [];
+    const side = name === 'source' ? 'source' : 'target';
+    const boneOf = (canon) => view.bone(canon) || view.bone(mapping[side]?.[canon]);
+    if (opts.contacts) {
+      const vp = contacts.vertexPairs;
+      const rows = vp?.byFrame.get(f);
+      if (rows) {
+        const [ki, kj] = name === 'source' ? ['source_i', 'source_j'] : ['target_i', 'target_j'];
+        for (const r of rows) {
+          const a = view.vertexPosition(vp[ki][r]);
+          const b = view.vertexPosition(vp[kj][r]);
+          if (a && b) {
+            points.push({ position: a, color: CONTACT_COLOR, size: 0.6 }, { position: b, color: CONTACT_COLOR, size: 0.6 });
+            lines.push({ a, b, color: CONTACT_COLOR });
+          }
+        }
+      } else {
+        for (const p of activePairs(contacts.pairs, f)) {
+          const a = boneOf(p.hand);
+          const b = boneOf(p.other);
+          if (!a) continue;
+          const pa = a.getWorldPosition(new Vector3());
+          points.push({ position: pa, color: CONTACT_COLOR });
+          if (b) {
+            const pb = b.getWorldPosition(new Vector3());
+            points.push({ position: pb, color: CONTACT_COLOR, size: 0.7 });
+            lines.push({ a: pa, b: pb, color: CONTACT_COLOR });
+          }
+        }
+      }
+      const feet = name === 'source' ? null : contacts.feet[name];
+      for (const [canon, labels] of Object.entries(feet || {})) {
+        if (!labels[f]) continue;
+        const bone = boneOf(canon);
+        if (bone) points.push({ position: bone.getWorldPosition(new Vector3()), color: FOOT_COLOR, size: 1.2 });
+      }
+    }
+    view.setMarkers(points, lines);
+    m.fig.dataset.markers = String(points.length);
+    if (name !== 'source') {
+      const pen = opts.penetration ? penetration[name]?.get(f) : null;
+      view.highlight(pen ? pen.vertex : null);
+      m.fig.dataset.penetrating = String(pen ? pen.vertex.length : 0);
+    }
+  }
+}
+
+function renderSummary(el, metrics, job) {
+  if (!metrics.summary.length) {
+    el.innerHTML = `<h2>Summary</h2><p class="no-data" data-no-summary="true">No summary numbers for this job${metrics.schema ? ` (metrics schema ${esc(metrics.schema)})` : ''}.</p>`;
+    return;
+  }
+  const rows = metrics.summary.map((r) => `<tr data-key="${esc(r.key)}" class="${r.verdict || ''}">
+      <th scope="row">${esc(r.label)}<small>${esc(r.unit)}</small></th>
+      <td>${formatNumber(r.before)}</td><td>${formatNumber(r.after)}</td>
+      <td class="delta">${r.delta === null ? '' : (r.delta > 0 ? '+' : '') + formatNumber(r.delta)}</td></tr>`).join('');
+  el.innerHTML = `<h2>Summary <small>${esc(job.id)}</small></h2><table class="summary-table">
+    <thead><tr><th></th><th style="color:${COLORS.before}">before</th><th style="color:${COLORS.after}">after</th><th>change</th></tr></thead>
+    <tbody>${rows}</tbody></table>`;
+}
+
+function renderNotes(el, job, metrics) {
+  const notes = [...new Set([...(job.warnings || []), ...metrics.notes])];
+  if (!notes.length) { el.innerHTML = ''; return; }
+  el.innerHTML = `<details><summary>${notes.length} note${notes.length > 1 ? 's' : ''} from the pipeline</summary><ul>${notes.map((n) => `<li>${esc(n)}</li>`).join('')}</ul></details>`;
+}

@@ -1,0 +1,142 @@
+/**
+ * Per-frame charts on a plain canvas: "before" and "after" lines of one metric, a playhead that follows the
+ * timeline, and click-or-drag to scrub. A chart without series says "no data for this job".
+ */
+import { seriesRange, valueAt } from '../metrics.js';
+import { formatNumber } from '../format.js';
+
+export const COLORS = { before: '#e8a33d', after: '#4aa3ff', playhead: '#f2f2f2', grid: '#39404a', text: '#aab3bf' };
+
+export class Chart {
+  /**
+   * @param {HTMLElement} container the chart's box (sized by CSS)
+   * @param {{id: string, title: string, unit: string, before: any, after: any}} data from metrics.chartData
+   * @param {import('./timeline.js').Timeline} timeline
+   */
+  constructor(container, data, timeline) {
+    this.container = container;
+    this.data = data;
+    this.timeline = timeline;
+    this.hasData = Boolean(data.before || data.after);
+    container.classList.add('chart');
+    container.dataset.chart = data.id;
+    container.dataset.hasData = String(this.hasData);
+    container.dataset.points = String((data.before?.count ?? 0) + (data.after?.count ?? 0));
+    const head = document.createElement('div');
+    head.className = 'chart-head';
+    head.innerHTML = `<span class="chart-title"></span><span class="chart-readout"></span>`;
+    head.querySelector('.chart-title').textContent = data.title + (data.unit ? ` (${data.unit})` : '');
+    this.readout = head.querySelector('.chart-readout');
+    container.appendChild(head);
+    this.canvas = document.createElement('canvas');
+    this.canvas.className = 'chart-canvas';
+    container.appendChild(this.canvas);
+    this.range = seriesRange([data.before, data.after]);
+    this.frame = -1;
+    const scrub = (e) => {
+      if (!this.hasData) return;
+      const r = this.canvas.getBoundingClientRect();
+      const x = (e.clientX - r.left - this.pad.l) / Math.max(1, r.width - this.pad.l - this.pad.r);
+      this.timeline.pause();
+      this.timeline.seek(x * (this.timeline.frames - 1));
+    };
+    this.pad = { l: 44, r: 8, t: 6, b: 16 };
+    this.canvas.addEventListener('pointerdown', (e) => {
+      this.canvas.setPointerCapture(e.pointerId);
+      scrub(e);
+      const move = (ev) => scrub(ev);
+      const up = () => {
+        this.canvas.removeEventListener('pointermove', move);
+        this.canvas.removeEventListener('pointerup', up);
+      };
+      this.canvas.addEventListener('pointermove', move);
+      this.canvas.addEventListener('pointerup', up);
+    });
+    this.resizeObserver = new ResizeObserver(() => this.draw(this.timeline.frame, true));
+    this.resizeObserver.observe(this.canvas);
+  }
+
+  /** Redraw with the playhead at `frame`. */
+  draw(frame, force = false) {
+    if (frame === this.frame && !force) return;
+    this.frame = frame;
+    const dpr = Math.min(window.devicePixelRatio || 1, 2);
+    const w = Math.max(1, this.canvas.clientWidth);
+    const h = Math.max(1, this.canvas.clientHeight);
+    if (this.canvas.width !== Math.round(w * dpr) || this.canvas.height !== Math.round(h * dpr)) {
+      this.canvas.width = Math.round(w * dpr);
+      this.canvas.height = Math.round(h * dpr);
+    }
+    const ctx = this.canvas.getContext('2d');
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    ctx.font = '11px system-ui, sans-serif';
+    if (!this.hasData) {
+      ctx.fillStyle = COLORS.text;
+      ctx.textAlign = 'center';
+      ctx.textBaseline = 'middle';
+      ctx.fillText('no data for this job', w / 2, h / 2);
+      this.readout.textContent = '';
+      this.container.dataset.playhead = String(frame);
+      return;
+    }
+    const { l, r, t, b } = this.pad;
+    const pw = w - l - r;
+    const ph = h - t - b;
+    const n = Math.max(2, this.timeline.frames);
+    const [lo, hi] = this.range;
+    const X = (i) => l + (i / (n - 1)) * pw;
+    const Y = (v) => t + ph - ((v - lo) / (hi - lo)) * ph;
+    ctx.strokeStyle = COLORS.grid;
+    ctx.lineWidth = 1;
+    ctx.fillStyle = COLORS.text;
+    ctx.textAlign = 'right';
+    ctx.textBaseline = 'middle';
+    for (const v of [lo, (lo + hi) / 2, hi]) {
+      ctx.beginPath();
+      ctx.moveTo(l, Math.round(Y(v)) + 0.5);
+      ctx.lineTo(l + pw, Math.round(Y(v)) + 0.5);
+      ctx.stroke();
+      ctx.fillText(formatNumber(v, 2), l - 4, Y(v));
+    }
+    ctx.textAlign = 'left';
+    ctx.textBaseline = 'top';
+    ctx.fillText('0', l, t + ph + 3);
+    ctx.textAlign = 'right';
+    ctx.fillText(String(n - 1), l + pw, t + ph + 3);
+    for (const [name, s] of [['before', this.data.before], ['after', this.data.after]]) {
+      if (!s) continue;
+      ctx.strokeStyle = COLORS[name];
+      ctx.lineWidth = name === 'after' ? 1.8 : 1.4;
+      ctx.beginPath();
+      let open = false;
+      s.values.forEach((v, i) => {
+        if (v === null) { open = false; return; }
+        if (!open) { ctx.moveTo(X(i), Y(v)); open = true; } else ctx.lineTo(X(i), Y(v));
+      });
+      ctx.stroke();
+      // isolated points (a single defined frame between gaps) as dots
+      ctx.fillStyle = COLORS[name];
+      s.values.forEach((v, i) => {
+        if (v !== null && (s.values[i - 1] ?? null) === null && (s.values[i + 1] ?? null) === null) {
+          ctx.fillRect(X(i) - 1.5, Y(v) - 1.5, 3, 3);
+        }
+      });
+    }
+    const x = Math.round(X(Math.min(frame, n - 1))) + 0.5;
+    ctx.strokeStyle = COLORS.playhead;
+    ctx.lineWidth = 1;
+    ctx.beginPath();
+    ctx.moveTo(x, t);
+    ctx.lineTo(x, t + ph);
+    ctx.stroke();
+    const bv = valueAt(this.data.before, frame);
+    const av = valueAt(this.data.after, frame);
+    this.readout.innerHTML = `<b style="color:${COLORS.before}">${formatNumber(bv)}</b> → <b style="color:${COLORS.after}">${formatNumber(av)}</b>`;
+    this.container.dataset.playhead = String(frame);
+  }
+
+  dispose() {
+    this.resizeObserver.disconnect();
+  }
+}

@@ -1,0 +1,306 @@
+"""End to end in a real headless Chromium: upload a shared clip and body through the form, wait for the job on the
+dashboard, review it in the viewer (three views render a moving character, scrubbing locks all three to the same
+frame, charts, keyboard, laptop and wide layouts, share link without the key), and the single-file GLB viewer.
+
+Runs against the real service (Redis, worker processes, uvicorn serving frontend/dist). Screenshots are kept in
+test-artifacts/e2e/.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from e2e_helpers import (
+    LAPTOP,
+    VIEWS,
+    WIDE,
+    boxes_in_viewport,
+    bright_fraction,
+    changed_fraction,
+    overflow,
+    seek,
+    view_frames,
+    view_pixels,
+)
+
+pytestmark = [pytest.mark.e2e, pytest.mark.service]
+
+CLIP = "motions/cmu/007_03.bvh"
+BODY = "characters/mh_male_bulky.glb"
+FRAME_END = 40  # a short range keeps the job quick
+
+
+@dataclass
+class FormJob:
+    """What the form flow produced and saw."""
+
+    job_id: str
+    base_url: str
+    key: str
+    motion: dict[str, Any]
+    character: dict[str, Any]
+    motion_card: str
+    character_card: str
+    upload_log: list[dict[str, Any]]
+    dashboard_statuses: list[str] = field(default_factory=list)
+    job: dict[str, Any] = field(default_factory=dict)
+
+
+def open_app(page: Any, base: str, key: str) -> None:
+    """Open the app with no key stored, get the key prompt, enter the key."""
+    page.goto(f"{base}/#/upload")
+    page.wait_for_selector("#api-key")
+    assert "Enter your API key" in page.inner_text("main")
+    page.fill("#api-key", key)
+    page.click(".key-form button[type=submit]")
+    page.wait_for_selector("#motion-file", state="attached")
+
+
+@pytest.fixture(scope="module")
+def form_job(e2e_service: Any, api_key: str, shared_data: Path, browser: Any, artifacts: Path) -> FormJob:
+    """Upload the shared clip and body through the form, submit a short job, wait for it on the dashboard."""
+    base = e2e_service.base_url
+    ctx = browser.new_context(viewport=LAPTOP)
+    page = ctx.new_page()
+    page.set_default_timeout(60_000)
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        open_app(page, base, api_key)
+        with page.expect_response(lambda r: r.url.endswith("/v1/motions") and r.request.method == "POST") as mr:
+            page.set_input_files("#motion-file", str(shared_data / CLIP))
+        motion = mr.value.json()
+        assert mr.value.status == 201, motion
+        with page.expect_response(lambda r: r.url.endswith("/v1/characters") and r.request.method == "POST") as cr:
+            page.set_input_files("#target-file", str(shared_data / BODY))
+        character = cr.value.json()
+        assert cr.value.status == 201, character
+        page.wait_for_selector(f'.card[data-phase=ready][data-asset="{motion["id"]}"]')
+        page.wait_for_selector(f'.card[data-phase=ready][data-asset="{character["id"]}"]')
+        motion_card = page.inner_text(f'.card[data-asset="{motion["id"]}"]')
+        character_card = page.inner_text(f'.card[data-asset="{character["id"]}"]')
+        upload_log = page.evaluate("window.__uploadLog || []")
+        page.fill("input[name=frame_end]", str(FRAME_END))
+        page.screenshot(path=str(artifacts / "01-upload-form-laptop.png"), full_page=True)
+        assert page.inner_text("[data-act=submit]") == "Submit job"
+        page.click("[data-act=submit]")
+        page.wait_for_url("**/#/jobs/*/review")
+        job_id = page.url.split("#/jobs/")[1].split("/")[0]
+        # The dashboard: the job's row turns succeeded while the page polls.
+        page.goto(f"{base}/#/jobs")
+        row = f'tr[data-job="{job_id}"]'
+        page.wait_for_selector(row)
+        statuses = []
+        for _ in range(240):
+            st = page.get_attribute(row, "data-status")
+            if not statuses or statuses[-1] != st:
+                statuses.append(st)
+            if st in ("succeeded", "failed", "canceled"):
+                break
+            page.wait_for_timeout(250)
+        page.screenshot(path=str(artifacts / "02-dashboard-laptop.png"))
+        assert statuses[-1] == "succeeded", f"{statuses}: {page.inner_text(row)}"
+        job = httpx.get(f"{base}/v1/jobs/{job_id}", headers={"X-API-Key": api_key}).json()
+        assert not errors, errors
+        return FormJob(job_id, base, api_key, motion, character, motion_card, character_card, upload_log,
+                       statuses, job)  # fmt: skip
+    finally:
+        ctx.close()
+
+
+def open_review(new_page: Any, fj: FormJob, viewport: dict[str, int] = LAPTOP) -> Any:
+    """A page on the job's review URL with the key already stored (as a reviewer who has it)."""
+    page = new_page(viewport)
+    page.goto(f"{fj.base_url}/#/settings")
+    page.evaluate("(k) => localStorage.setItem('retarget.apiKey', k)", fj.key)
+    page.goto(f"{fj.base_url}/#/jobs/{fj.job_id}/review")
+    page.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
+    return page
+
+
+def test_upload_form_shows_parsed_files_and_progress(form_job: FormJob) -> None:
+    info = form_job.motion["info"]
+    card = form_job.motion_card
+    assert f"frames\n{info['frames']}" in card or f"frames{info['frames']}" in card.replace("\n", "")
+    assert str(info["joint_count"]) in card
+    assert "Joint mapping" in card and f"{len(info['mapping']['joints'])} of 22" in card
+    for w in info["warnings"]:
+        assert w in card
+    cinfo = form_job.character["info"]
+    assert str(cinfo["vertices"]) in form_job.character_card
+    assert "height" in form_job.character_card
+    # XHR upload progress: events for both files, ending with every byte sent.
+    names = {e["name"] for e in form_job.upload_log}
+    assert {"007_03.bvh", "mh_male_bulky.glb"} <= names
+    for name in names:
+        last = [e for e in form_job.upload_log if e["name"] == name][-1]
+        assert last["loaded"] == last["total"] > 0
+
+
+def test_dashboard_followed_the_job(form_job: FormJob) -> None:
+    assert form_job.dashboard_statuses[-1] == "succeeded"
+    assert form_job.job["options"]["frame_end"] == FRAME_END
+    assert set(form_job.job["results"]) >= {"result_glb", "before_glb", "metrics_json"}
+
+
+def test_review_views_render_a_moving_character(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
+    page = open_review(new_page, form_job)
+    hook = page.evaluate("({frames: window.__viewer.frames, fps: window.__viewer.fps, views: window.__viewer.views()})")
+    assert hook["frames"] == FRAME_END
+    expected = [v for v in VIEWS if v != "source" or "source_glb" in form_job.job["results"]]
+    assert [v for v in VIEWS if hook["views"][v]["loaded"]] == expected
+    a, b = 3, FRAME_END - 5
+    seek(page, a)
+    first = {v: view_pixels(page, v) for v in expected}
+    page.screenshot(path=str(artifacts / f"03-review-laptop-frame{a}.png"))
+    for v in expected:
+        page.locator(f'canvas[data-view="{v}"]').screenshot(path=str(artifacts / f"04-view-{v}-frame{a}.png"))
+    seek(page, b)
+    second = {v: view_pixels(page, v) for v in expected}
+    page.screenshot(path=str(artifacts / f"03-review-laptop-frame{b}.png"))
+    for v in expected:
+        page.locator(f'canvas[data-view="{v}"]').screenshot(path=str(artifacts / f"04-view-{v}-frame{b}.png"))
+        lit = bright_fraction(first[v]), bright_fraction(second[v])
+        assert min(lit) > 0.01, f"{v} view looks blank: bright pixel share {lit}"
+        moved = changed_fraction(first[v], second[v])
+        assert moved > 0.003, f"{v} view did not change between frames {a} and {b} ({moved:.4f} of pixels)"
+    assert not page.errors, page.errors
+
+
+def test_scrubbing_moves_all_views_to_the_same_frame(new_page: Any, form_job: FormJob) -> None:
+    page = open_review(new_page, form_job)
+    for target in (FRAME_END - 1, 7, 0, 23):
+        page.fill(".scrubber", str(target))
+        page.wait_for_function("(f) => window.__viewer.frame === f", arg=target)
+        page.wait_for_function(
+            "(f) => Object.values(window.__viewer.views()).filter((v) => v.loaded).every((v) => v.frame === f)",
+            arg=target,
+        )
+        frames = view_frames(page)
+        assert set(frames.values()) == {target}, frames
+        assert page.get_attribute(".controls-bar", "data-frame") == str(target)
+        for chart in page.evaluate("window.__viewer.charts()"):
+            assert chart["playhead"] == target, chart
+    assert not page.errors, page.errors
+
+
+def test_keyboard_plays_pauses_and_steps(new_page: Any, form_job: FormJob) -> None:
+    page = open_review(new_page, form_job)
+    seek(page, 10)
+    page.click("body", position={"x": 5, "y": 300})  # focus the page, not a control
+    page.keyboard.press("ArrowRight")
+    page.wait_for_function("window.__viewer.frame === 11")
+    page.keyboard.press("ArrowLeft")
+    page.keyboard.press("ArrowLeft")
+    page.wait_for_function("window.__viewer.frame === 9")
+    page.keyboard.press("Shift+ArrowRight")
+    page.wait_for_function("window.__viewer.frame === 19")
+    assert set(view_frames(page).values()) == {19}
+    page.keyboard.press("Home")
+    page.wait_for_function("window.__viewer.frame === 0")
+    page.keyboard.press("Space")
+    page.wait_for_function("window.__viewer.playing === true")
+    page.wait_for_function("window.__viewer.frame >= 3", timeout=20_000)
+    page.keyboard.press("Space")
+    page.wait_for_function("window.__viewer.playing === false")
+    stopped = page.evaluate("window.__viewer.frame")
+    page.wait_for_timeout(400)
+    assert page.evaluate("window.__viewer.frame") == stopped
+    page.keyboard.press("End")
+    page.wait_for_function(f"window.__viewer.frame === {FRAME_END - 1}")
+    # The play button does the same as space.
+    page.click("[data-act=play]")
+    page.wait_for_function("window.__viewer.playing === true")
+    page.click("[data-act=play]")
+    page.wait_for_function("window.__viewer.playing === false")
+    assert not page.errors, page.errors
+
+
+def test_charts_show_the_metrics_of_the_job(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
+    """With per-frame series in the job's metrics, every chart has data and a playhead; without (older metrics
+    schema), every chart says so and the page states there is no per-frame data."""
+    metrics = httpx.get(f"{form_job.base_url}{form_job.job['results']['metrics_json']}",
+                        headers={"X-API-Key": form_job.key}).json()  # fmt: skip
+    has_series = any(isinstance((metrics.get(m) or {}).get("series"), dict) and metrics[m]["series"]
+                     for m in ("before", "after"))  # fmt: skip
+    page = open_review(new_page, form_job)
+    seek(page, 12)
+    charts = page.evaluate("window.__viewer.charts()")
+    assert [c["id"] for c in charts] == ["penetration", "contact", "skate"]
+    page.locator(".charts").screenshot(path=str(artifacts / "05-charts-real-job.png"))
+    if has_series:
+        pen = page.evaluate("window.__viewer.charts()")[0]
+        assert pen["hasData"] and pen["points"] > 0 and pen["playhead"] == 12
+        assert page.locator(".summary-table tbody tr").count() > 0
+    else:
+        assert all(not c["hasData"] for c in charts)
+        assert page.locator('.no-data[data-no-series="true"]').is_visible()
+        assert "No per-frame data for this job" in page.inner_text(".charts")
+
+
+def test_layouts_laptop_and_wide_without_overflow(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
+    for name, viewport in (("laptop", LAPTOP), ("wide", WIDE)):
+        page = open_review(new_page, form_job, viewport)
+        seek(page, 15)
+        page.screenshot(path=str(artifacts / f"06-review-{name}.png"))
+        o = overflow(page)
+        assert o["sw"] <= o["w"], f"{name}: horizontal overflow {o}"
+        # Views, transport bar and charts are on screen, side by side, without scrolling.
+        assert not boxes_in_viewport(page, ".view, .controls-bar, .chart"), name
+        boxes = [page.locator(f'.view[data-view="{v}"]').bounding_box() for v in VIEWS]
+        assert all(b and b["width"] > 250 and b["height"] > 200 for b in boxes), (name, boxes)
+        assert boxes[0]["x"] < boxes[1]["x"] < boxes[2]["x"], "views are not side by side"
+        bar = page.locator(".controls-bar").bounding_box()
+        assert bar["y"] + bar["height"] <= viewport["height"], f"{name}: the transport bar is below the fold"
+        for v in VIEWS:
+            if page.evaluate("(v) => window.__viewer.views()[v].loaded", v):
+                assert bright_fraction(view_pixels(page, v)) > 0.005, f"{name}: {v} view blank"
+        assert not page.errors, page.errors
+    # The dashboard and the form at both sizes, too.
+    for name, viewport in (("laptop", LAPTOP), ("wide", WIDE)):
+        page = new_page(viewport)
+        page.goto(f"{form_job.base_url}/#/settings")
+        page.evaluate("(k) => localStorage.setItem('retarget.apiKey', k)", form_job.key)
+        for route in ("jobs", "upload"):
+            page.goto(f"{form_job.base_url}/#/{route}")
+            page.wait_for_timeout(800)
+            o = overflow(page)
+            assert o["sw"] <= o["w"], f"{route} at {name}: horizontal overflow {o}"
+            page.screenshot(path=str(artifacts / f"07-{route}-{name}.png"))
+
+
+def test_share_link_opens_the_review_without_leaking_the_key(new_page: Any, form_job: FormJob) -> None:
+    page = open_review(new_page, form_job)
+    page.click("[data-act=share]")
+    page.wait_for_function("document.querySelector('.share-note').dataset.url")
+    url = page.get_attribute(".share-note", "data-url")
+    assert url == f"{form_job.base_url}/#/jobs/{form_job.job_id}/review"
+    assert form_job.key not in url and form_job.key not in page.url
+    # Another browser without the key: asked for it, then lands on the review.
+    other = new_page(LAPTOP)
+    other.goto(url)
+    other.wait_for_selector("#api-key")
+    other.fill("#api-key", form_job.key)
+    other.click(".key-form button[type=submit]")
+    other.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
+    assert other.evaluate("window.__viewer.jobId") == form_job.job_id
+
+
+def test_download_buttons_give_the_results(new_page: Any, form_job: FormJob, tmp_path: Path) -> None:
+    page = open_review(new_page, form_job)
+    with page.expect_download() as dl:
+        page.click('[data-dl="result_glb"]')
+    path = tmp_path / dl.value.suggested_filename
+    dl.value.save_as(path)
+    assert dl.value.suggested_filename == f"{form_job.job_id}-result.glb"
+    data = path.read_bytes()
+    assert data[:4] == b"glTF"
+    with page.expect_download() as dl2:
+        page.click('[data-dl="metrics_json"]')
+    dl2.value.save_as(tmp_path / "m.json")
+    assert isinstance(json.loads((tmp_path / "m.json").read_text()), dict)
