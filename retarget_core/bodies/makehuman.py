@@ -45,8 +45,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 
+from retarget_core.bodies.params import BodyParams
 from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT
 from retarget_core.character import Character
 from retarget_core.errors import ToolMissingError
@@ -75,29 +75,6 @@ MACRO_ANCHORS: dict[str, tuple[tuple[float, str], ...]] = {
     "proportions": ((0.0, "uncommonproportions"), (0.5, ""), (1.0, "idealproportions")),
 }
 RACES = ("african", "asian", "caucasian")
-
-
-class BodyParams(BaseModel):
-    """Parameters of a MakeHuman body (immutable, hashable).
-
-    gender: 0 female .. 1 male (MakeHuman's gender macro).
-    age: in years, 1..90 (mapped to MakeHuman's age macro: 1 y -> 0, 11 y -> 0.1875, 25 y -> 0.5, 90 y -> 1).
-    weight, muscle: MakeHuman's macros, 0 min .. 0.5 average .. 1 max.
-    height: target standing height in metres (the rest mesh's vertical extent equals it); None keeps the
-        natural height of the other macros (MakeHuman's height macro at 0.5, no scaling).
-    proportions: MakeHuman's body-proportions macro, 0 uncommon .. 0.5 neutral .. 1 ideal.
-    name: the character's name.
-    """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    name: str = "makehuman"
-    gender: float = Field(default=0.5, ge=0.0, le=1.0)
-    age: float = Field(default=25.0, ge=1.0, le=90.0)
-    weight: float = Field(default=0.5, ge=0.0, le=1.0)
-    muscle: float = Field(default=0.5, ge=0.0, le=1.0)
-    height: float | None = Field(default=None, ge=0.5, le=2.5)
-    proportions: float = Field(default=0.5, ge=0.0, le=1.0)
 
 
 def age_years_to_macro(years: float) -> float:

@@ -9,19 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from retarget_core.bodies.makehuman import BodyParams, make_body
+from retarget_core.bodies.makehuman import make_body
+from retarget_core.bodies.params import PRESETS, BodyParams
 from retarget_core.character import Character
-
-PRESETS: dict[str, BodyParams] = {
-    "male_average": BodyParams(name="male_average", gender=1.0, age=25.0, weight=0.5, muscle=0.5, height=1.7304),
-    "male_skinny": BodyParams(name="male_skinny", gender=1.0, age=25.0, weight=0.0, muscle=0.0, height=1.8750),
-    "male_muscular": BodyParams(name="male_muscular", gender=1.0, age=25.0, weight=0.5, muscle=1.0, height=1.8750),
-    "male_bulky": BodyParams(name="male_bulky", gender=1.0, age=25.0, weight=1.0, muscle=1.0, height=1.7304),
-    "female_average": BodyParams(name="female_average", gender=0.0, age=25.0, weight=0.5, muscle=0.5, height=1.5898),
-    "female_skinny": BodyParams(name="female_skinny", gender=0.0, age=25.0, weight=0.0, muscle=0.2, height=1.7362),
-    "neutral_tall": BodyParams(name="neutral_tall", gender=0.5, age=25.0, weight=0.3, muscle=0.6, height=1.9485),
-    "child": BodyParams(name="child", gender=0.5, age=9.0, weight=0.45, muscle=0.4, height=1.32),
-}  # fmt: skip
 
 
 def list_presets() -> list[str]:
