@@ -15,6 +15,7 @@ from typing import Any
 
 import httpx
 import pytest
+from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, metrics_with_series
 from e2e_helpers import (
     LAPTOP,
     VIEWS,
@@ -113,9 +114,14 @@ def form_job(e2e_service: Any, api_key: str, shared_data: Path, browser: Any, ar
         ctx.close()
 
 
-def open_review(new_page: Any, fj: FormJob, viewport: dict[str, int] = LAPTOP) -> Any:
-    """A page on the job's review URL with the key already stored (as a reviewer who has it)."""
+def open_review(new_page: Any, fj: FormJob, viewport: dict[str, int] = LAPTOP, metrics: dict[str, Any] | None = None) -> Any:
+    """A page on the job's review URL with the key already stored (as a reviewer who has it). ``metrics``: served
+    instead of the job's metrics JSON."""
     page = new_page(viewport)
+    if metrics is not None:
+        body = json.dumps(metrics)
+        page.route(f"**/v1/jobs/{fj.job_id}/metrics.json",
+                   lambda route: route.fulfill(status=200, content_type="application/json", body=body))  # fmt: skip
     page.goto(f"{fj.base_url}/#/settings")
     page.evaluate("(k) => localStorage.setItem('retarget.apiKey', k)", fj.key)
     page.goto(f"{fj.base_url}/#/jobs/{fj.job_id}/review")
@@ -243,11 +249,16 @@ def test_charts_show_the_metrics_of_the_job(new_page: Any, form_job: FormJob, ar
         assert "No per-frame data for this job" in page.inner_text(".charts")
 
 
-def test_layouts_laptop_and_wide_without_overflow(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
+@pytest.mark.parametrize("series", [False, True], ids=["job-metrics", "fixture-series"])
+def test_layouts_laptop_and_wide_without_overflow(new_page: Any, form_job: FormJob, artifacts: Path,
+                                                   series: bool) -> None:
+    """The review fits the screen at both sizes (views side by side, transport, charts and summary above the
+    fold), with the job's own metrics and with a metrics JSON that has series and a long summary."""
+    metrics = metrics_with_series(FRAME_END, 60.0) if series else None
     for name, viewport in (("laptop", LAPTOP), ("wide", WIDE)):
-        page = open_review(new_page, form_job, viewport)
+        page = open_review(new_page, form_job, viewport, metrics=metrics)
         seek(page, 15)
-        page.screenshot(path=str(artifacts / f"06-review-{name}.png"))
+        page.screenshot(path=str(artifacts / f"06-review-{name}{'-series' if series else ''}.png"))
         o = overflow(page)
         assert o["sw"] <= o["w"], f"{name}: horizontal overflow {o}"
         # Views, transport bar and charts are on screen, side by side, without scrolling.
@@ -255,12 +266,16 @@ def test_layouts_laptop_and_wide_without_overflow(new_page: Any, form_job: FormJ
         boxes = [page.locator(f'.view[data-view="{v}"]').bounding_box() for v in VIEWS]
         assert all(b and b["width"] > 250 and b["height"] > 200 for b in boxes), (name, boxes)
         assert boxes[0]["x"] < boxes[1]["x"] < boxes[2]["x"], "views are not side by side"
-        bar = page.locator(".controls-bar").bounding_box()
-        assert bar["y"] + bar["height"] <= viewport["height"], f"{name}: the transport bar is below the fold"
+        for sel in (".controls-bar", ".chart", ".summary"):
+            for box in page.locator(sel).all():
+                b = box.bounding_box()
+                assert b["y"] + b["height"] <= viewport["height"] + 0.5, f"{name}: {sel} is below the fold ({b})"
         for v in VIEWS:
             if page.evaluate("(v) => window.__viewer.views()[v].loaded", v):
                 assert bright_fraction(view_pixels(page, v)) > 0.005, f"{name}: {v} view blank"
         assert not page.errors, page.errors
+    if series:
+        return
     # The dashboard and the form at both sizes, too.
     for name, viewport in (("laptop", LAPTOP), ("wide", WIDE)):
         page = new_page(viewport)
@@ -304,3 +319,93 @@ def test_download_buttons_give_the_results(new_page: Any, form_job: FormJob, tmp
         page.click('[data-dl="metrics_json"]')
     dl2.value.save_as(tmp_path / "m.json")
     assert isinstance(json.loads((tmp_path / "m.json").read_text()), dict)
+
+
+def js_number(v: float) -> str:
+    """The viewer's formatNumber (3 significant digits) for plain values."""
+    return "%g" % float(f"{v:.3g}")
+
+
+def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
+    """The chart, summary and marker code against a metrics JSON that has per-frame series (built with the
+    schema's pydantic models), on the real job's GLBs."""
+    frames = FRAME_END
+    data = metrics_with_series(frames, 60.0)
+    page = open_review(new_page, form_job, metrics=data)
+    charts = {c["id"]: c for c in page.evaluate("window.__viewer.charts()")}
+    keys = {"penetration": "penetration_max_depth", "contact": "contact_distance", "skate": "foot_skate"}
+    for cid, key in keys.items():
+        n = sum(v is not None for m in ("before", "after") for v in data[m]["series"][key]["values"])
+        assert charts[cid]["hasData"] and charts[cid]["points"] == n, (cid, charts[cid], n)
+    assert not page.locator('.no-data[data-no-series="true"]').count()
+    # The playhead and the readout follow the timeline.
+    seek(page, 12)
+    pen = data["before"]["series"]["penetration_max_depth"]["values"][12], data["after"]["series"]["penetration_max_depth"]["values"][12]
+    readout = page.inner_text('.chart[data-chart="penetration"] .chart-readout')
+    assert readout.split("→")[0].strip() == js_number(pen[0]) and readout.split("→")[1].strip() == js_number(pen[1])
+    assert all(c["playhead"] == 12 for c in page.evaluate("window.__viewer.charts()"))
+    # A click in the middle of a chart jumps to the middle frame.
+    box = page.locator('.chart[data-chart="penetration"] canvas').bounding_box()
+    pad_left, pad_right = 44, 8
+    page.mouse.click(box["x"] + pad_left + 0.5 * (box["width"] - pad_left - pad_right), box["y"] + box["height"] / 2)
+    page.wait_for_function("(f) => Math.abs(window.__viewer.frame - f) <= 1", arg=(frames - 1) / 2)
+    # Summary numbers, before and after side by side (at 1.80 m), with the change coloured.
+    row = page.locator('.summary-table tr[data-key="penetration_max_depth"]')
+    cells = row.locator("td").all_inner_texts()
+    b180 = data["before"]["summary"]["penetration_max_depth"]["value_at_180"]
+    a180 = data["after"]["summary"]["penetration_max_depth"]["value_at_180"]
+    assert cells[0] == js_number(b180) and cells[1] == js_number(a180), cells
+    assert "better" in row.get_attribute("class")
+    assert page.locator('.summary-table tr[data-key="contact_satisfied_percent"]').get_attribute("class") == "better"
+    # Contact markers on a contact frame: vertex pairs (3 per frame, 2 points each) in every view, feet in before/after.
+    seek(page, CONTACT_FIRST + 2)
+    markers = {v: int(page.get_attribute(f'.view[data-view="{v}"]', "data-markers")) for v in VIEWS
+               if page.evaluate("(v) => window.__viewer.views()[v].loaded", v)}  # fmt: skip
+    assert markers["before"] >= 6 + 2 and markers["after"] >= 6 + 2, markers
+    if "source" in markers:
+        assert markers["source"] == 6, markers
+    seek(page, CONTACT_LAST + 5)
+    after_no_contact = int(page.get_attribute('.view[data-view="after"]', "data-markers"))
+    assert after_no_contact == 2, after_no_contact  # only the two planted foot joints of one side
+    # Penetrating vertices highlighted on the frames that list them.
+    seek(page, 10)
+    assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == "10"
+    assert page.get_attribute('.view[data-view="before"]', "data-penetrating") == "40"
+    seek(page, 11)
+    assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == "0"
+    page.uncheck('[data-toggle="contacts"]')
+    seek(page, CONTACT_FIRST + 2)
+    assert page.get_attribute('.view[data-view="after"]', "data-markers") == "0"
+    page.check('[data-toggle="contacts"]')
+    page.check('[data-toggle="skeleton"]')
+    seek(page, CONTACT_FIRST + 3)
+    page.screenshot(path=str(artifacts / "08-review-fixture-series-laptop.png"))
+    page.locator(".charts").screenshot(path=str(artifacts / "08-charts-fixture-series.png"))
+    assert not page.errors, page.errors
+
+
+def test_single_file_viewer_validates_and_plays(new_page: Any, form_job: FormJob, tmp_path: Path, artifacts: Path) -> None:
+    glb = httpx.get(f"{form_job.base_url}{form_job.job['results']['result_glb']}", headers={"X-API-Key": form_job.key})
+    good = tmp_path / "result.glb"
+    good.write_bytes(glb.content)
+    page = new_page(LAPTOP)
+    page.goto(f"{form_job.base_url}/#/view")  # no key needed: nothing is uploaded
+    page.set_input_files("#glb-file", str(good))
+    page.wait_for_selector(".validation[data-done]", timeout=60_000)
+    assert page.get_attribute(".validation", "data-done") == "valid", page.inner_text(".validation")
+    assert page.get_attribute(".validation-summary", "data-errors") == "0"
+    page.wait_for_selector('.view[data-view="file"][data-loaded="true"]')
+    page.wait_for_function("window.__fileviewer && window.__fileviewer.timeline.frames > 1")
+    assert page.evaluate("window.__fileviewer.timeline.frames") == FRAME_END
+    page.keyboard.press("End")
+    page.wait_for_function(f"window.__fileviewer.view.frame === {FRAME_END - 1}")
+    page.screenshot(path=str(artifacts / "09-glb-viewer-valid.png"))
+    # A damaged file: the validator's errors are listed.
+    bad = tmp_path / "broken.glb"
+    bad.write_bytes(glb.content[: len(glb.content) // 3])
+    page.set_input_files("#glb-file", str(bad))
+    page.wait_for_function("document.querySelector('.validation').dataset.done === 'invalid'", timeout=60_000)
+    assert int(page.get_attribute(".validation-summary", "data-errors")) > 0
+    assert page.locator("table.issues tr.sev-error").count() > 0
+    page.screenshot(path=str(artifacts / "09-glb-viewer-broken.png"))
+    assert not [e for e in page.errors if "pageerror" in e], page.errors

@@ -211,7 +211,7 @@ async function buildViewer(body, job, views, metrics) {
       : 'No metrics for this job.';
     chartsEl.appendChild(p);
   }
-  renderSummary(body.querySelector('.summary'), metrics, job);
+  renderSummary(body.querySelector('.summary'), metrics);
   renderNotes(body.querySelector('.notes'), job, metrics);
 
   const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
@@ -333,7 +333,7 @@ function updateOverlays(mv, metrics, f, opts) {
   }
 }
 
-function renderSummary(el, metrics, job) {
+function renderSummary(el, metrics) {
   if (!metrics.summary.length) {
     el.innerHTML = `<h2>Summary</h2><p class="no-data" data-no-summary="true">No summary numbers for this job${metrics.schema ? ` (metrics schema ${esc(metrics.schema)})` : ''}.</p>`;
     return;
@@ -342,7 +342,7 @@ function renderSummary(el, metrics, job) {
       <th scope="row">${esc(r.label)}<small>${esc(r.unit)}</small></th>
       <td>${formatNumber(r.before)}</td><td>${formatNumber(r.after)}</td>
       <td class="delta">${r.delta === null ? '' : (r.delta > 0 ? '+' : '') + formatNumber(r.delta)}</td></tr>`).join('');
-  el.innerHTML = `<h2>Summary <small>${esc(job.id)}</small></h2><table class="summary-table">
+  el.innerHTML = `<h2>Summary</h2><table class="summary-table">
     <thead><tr><th></th><th style="color:${COLORS.before}">before</th><th style="color:${COLORS.after}">after</th><th>change</th></tr></thead>
     <tbody>${rows}</tbody></table>`;
 }

@@ -187,7 +187,7 @@ export class ModelView {
       this.markers.remove(c);
       if (c.isLine) c.geometry.dispose();
     }
-    const r = 0.018 * (this._height ??= this.height()) / 1.8;
+    const r = 0.024 * (this._height ??= this.height()) / 1.8;
     for (const p of points) {
       const m = new Mesh(MARKER_GEOM, new MeshBasicMaterial({ color: p.color, depthTest: false, transparent: true, opacity: 0.9 }));
       m.position.copy(p.position);

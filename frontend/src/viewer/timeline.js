@@ -81,7 +81,7 @@ export class Timeline {
       if (this.loop) this._pos %= this.frames;
       else { this._pos = this.frames - 1; this.playing = false; }
     }
-    const f = Math.min(this.frames - 1, Math.floor(this._pos));
+    const f = Math.min(this.frames - 1, Math.floor(this._pos + 1e-6));
     if (f !== this.frame || !this.playing) {
       this.frame = f;
       this.emit();
