@@ -45,6 +45,7 @@ from service_harness import (  # noqa: E402
     free_port,
 )
 
+
 def _newest_source_mtime() -> float:
     paths = [FRONTEND / "index.html", FRONTEND / "vite.config.js", FRONTEND / "package.json"]
     paths += [p for p in (FRONTEND / "src").rglob("*") if p.is_file()]

@@ -65,7 +65,9 @@ def wait_drawn(page: Any, before: dict[str, int], timeout: float = 15_000) -> No
 
 def view_frames(page: Any) -> dict[str, int]:
     """The frame each view shows, from its own mixer (test hook) and from its data-frame attribute."""
-    hook = page.evaluate("Object.fromEntries(Object.entries(window.__viewer.views()).filter(([, v]) => v.loaded).map(([k, v]) => [k, v.frame]))")
+    hook = page.evaluate(
+        "Object.fromEntries(Object.entries(window.__viewer.views()).filter(([, v]) => v.loaded).map(([k, v]) => [k, v.frame]))"
+    )
     attrs = page.evaluate(
         "Object.fromEntries([...document.querySelectorAll('.view[data-view] .view-box[data-frame]')].map((b) => [b.closest('.view').dataset.view, Number(b.dataset.frame)]))"
     )
@@ -75,16 +77,20 @@ def view_frames(page: Any) -> dict[str, int]:
 
 def overflow(page: Any) -> dict[str, float]:
     """Page size against the viewport (a horizontal scroll bar means the layout overflows)."""
-    return dict(page.evaluate(
-        "({sw: document.documentElement.scrollWidth, sh: document.documentElement.scrollHeight, w: innerWidth, h: innerHeight})"
-    ))
+    return dict(
+        page.evaluate(
+            "({sw: document.documentElement.scrollWidth, sh: document.documentElement.scrollHeight, w: innerWidth, h: innerHeight})"
+        )
+    )
 
 
 def boxes_in_viewport(page: Any, selector: str) -> list[dict[str, float]]:
     """Bounding boxes of the elements matching ``selector`` that stick out of the viewport horizontally."""
-    return list(page.evaluate(
-        """(sel) => [...document.querySelectorAll(sel)].map((e) => e.getBoundingClientRect())
+    return list(
+        page.evaluate(
+            """(sel) => [...document.querySelectorAll(sel)].map((e) => e.getBoundingClientRect())
              .filter((r) => r.left < -0.5 || r.right > innerWidth + 0.5 || r.width < 1 || r.height < 1)
              .map((r) => ({left: r.left, right: r.right, width: r.width, height: r.height}))""",
-        selector,
-    ))
+            selector,
+        )
+    )

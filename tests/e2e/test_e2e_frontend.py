@@ -15,7 +15,6 @@ from typing import Any
 
 import httpx
 import pytest
-from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, metrics_with_series
 from e2e_helpers import (
     LAPTOP,
     VIEWS,
@@ -28,6 +27,7 @@ from e2e_helpers import (
     view_frames,
     view_pixels,
 )
+from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, metrics_with_series
 
 pytestmark = [pytest.mark.e2e, pytest.mark.service]
 
@@ -114,7 +114,9 @@ def form_job(e2e_service: Any, api_key: str, shared_data: Path, browser: Any, ar
         ctx.close()
 
 
-def open_review(new_page: Any, fj: FormJob, viewport: dict[str, int] = LAPTOP, metrics: dict[str, Any] | None = None) -> Any:
+def open_review(
+    new_page: Any, fj: FormJob, viewport: dict[str, int] = LAPTOP, metrics: dict[str, Any] | None = None
+) -> Any:
     """A page on the job's review URL with the key already stored (as a reviewer who has it). ``metrics``: served
     instead of the job's metrics JSON."""
     page = new_page(viewport)
@@ -250,8 +252,9 @@ def test_charts_show_the_metrics_of_the_job(new_page: Any, form_job: FormJob, ar
 
 
 @pytest.mark.parametrize("series", [False, True], ids=["job-metrics", "fixture-series"])
-def test_layouts_laptop_and_wide_without_overflow(new_page: Any, form_job: FormJob, artifacts: Path,
-                                                   series: bool) -> None:
+def test_layouts_laptop_and_wide_without_overflow(
+    new_page: Any, form_job: FormJob, artifacts: Path, series: bool
+) -> None:
     """The review fits the screen at both sizes (views side by side, transport, charts and summary above the
     fold), with the job's own metrics and with a metrics JSON that has series and a long summary."""
     metrics = metrics_with_series(FRAME_END, 60.0) if series else None
@@ -322,8 +325,14 @@ def test_download_buttons_give_the_results(new_page: Any, form_job: FormJob, tmp
 
 
 def js_number(v: float) -> str:
-    """The viewer's formatNumber (3 significant digits) for plain values."""
-    return "%g" % float(f"{v:.3g}")
+    """The viewer's formatNumber (frontend/src/format.js) for values in the range the fixture uses."""
+    if v == 0:
+        return "0"
+    if abs(v) >= 1000:
+        return f"{v:.0f}"
+    if abs(v) >= 100:
+        return f"{v:.1f}"
+    return f"{float(f'{v:.3g}'):g}"
 
 
 def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
@@ -340,7 +349,10 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     assert not page.locator('.no-data[data-no-series="true"]').count()
     # The playhead and the readout follow the timeline.
     seek(page, 12)
-    pen = data["before"]["series"]["penetration_max_depth"]["values"][12], data["after"]["series"]["penetration_max_depth"]["values"][12]
+    pen = (
+        data["before"]["series"]["penetration_max_depth"]["values"][12],
+        data["after"]["series"]["penetration_max_depth"]["values"][12],
+    )
     readout = page.inner_text('.chart[data-chart="penetration"] .chart-readout')
     assert readout.split("→")[0].strip() == js_number(pen[0]) and readout.split("→")[1].strip() == js_number(pen[1])
     assert all(c["playhead"] == 12 for c in page.evaluate("window.__viewer.charts()"))
@@ -384,7 +396,9 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     assert not page.errors, page.errors
 
 
-def test_single_file_viewer_validates_and_plays(new_page: Any, form_job: FormJob, tmp_path: Path, artifacts: Path) -> None:
+def test_single_file_viewer_validates_and_plays(
+    new_page: Any, form_job: FormJob, tmp_path: Path, artifacts: Path
+) -> None:
     glb = httpx.get(f"{form_job.base_url}{form_job.job['results']['result_glb']}", headers={"X-API-Key": form_job.key})
     good = tmp_path / "result.glb"
     good.write_bytes(glb.content)
@@ -409,3 +423,53 @@ def test_single_file_viewer_validates_and_plays(new_page: Any, form_job: FormJob
     assert page.locator("table.issues tr.sev-error").count() > 0
     page.screenshot(path=str(artifacts / "09-glb-viewer-broken.png"))
     assert not [e for e in page.errors if "pageerror" in e], page.errors
+
+
+def test_batch_from_the_form_and_errors_in_words(
+    new_page: Any, form_job: FormJob, shared_data: Path, artifacts: Path
+) -> None:
+    """Several targets make a batch (already uploaded assets picked from the lists, one more body dropped in); the
+    batch page shows the motions x characters grid live; a failed job's error reads as words on the dashboard and
+    on its review URL."""
+    page = new_page(LAPTOP)
+    page.goto(f"{form_job.base_url}/#/settings")
+    page.evaluate("(k) => localStorage.setItem('retarget.apiKey', k)", form_job.key)
+    page.goto(f"{form_job.base_url}/#/upload")
+    motion_pick = "[data-kind=motion] select[data-pick=existing]"
+    page.wait_for_selector(f'{motion_pick} option[value="{form_job.motion["id"]}"]', state="attached")
+    page.select_option(motion_pick, form_job.motion["id"])
+    page.select_option("[data-kind=target] select[data-pick=existing]", form_job.character["id"])
+    page.set_input_files("#target-file", str(shared_data / "characters/mh_female_skinny.glb"))
+    page.wait_for_selector("[data-cards=target] .card[data-phase=ready] >> nth=1")
+    assert page.locator("[data-cards=motion] .card[data-phase=ready]").count() == 1
+    page.fill("input[name=frame_end]", "20")
+    page.fill("input[name=batch_name]", "e2e batch")
+    assert page.inner_text("[data-act=submit]") == "Submit batch of 2 jobs"
+    page.click("[data-act=submit]")
+    page.wait_for_url("**/#/batches/*")
+    page.wait_for_function("document.querySelectorAll('.batch-grid td[data-job]').length === 2")
+    page.wait_for_function(
+        "[...document.querySelectorAll('.batch-grid td[data-job]')].every((td) => td.dataset.status === 'succeeded')",
+        timeout=120_000,
+    )
+    assert "e2e batch" in page.inner_text(".batch")
+    page.screenshot(path=str(artifacts / "10-batch-laptop.png"))
+    # A job that fails on its input: frame range past the end of the clip.
+    r = httpx.post(f"{form_job.base_url}/v1/jobs", headers={"X-API-Key": form_job.key}, json={
+        "motion_id": form_job.motion["id"], "target_character_id": form_job.character["id"],
+        "options": {"frame_start": form_job.motion["info"]["frames"] + 50},
+    })  # fmt: skip
+    assert r.status_code == 202, r.text
+    failed = r.json()["id"]
+    page.goto(f"{form_job.base_url}/#/jobs?status=failed")
+    row = f'tr[data-job="{failed}"][data-status="failed"]'
+    page.wait_for_selector(row, timeout=60_000)
+    text = page.inner_text(row)
+    message = httpx.get(f"{form_job.base_url}/v1/jobs/{failed}", headers={"X-API-Key": form_job.key}).json()["message"]
+    assert message and message in text and "fix them and submit again" in text
+    assert page.locator(f"{row} [data-retry]").count() == 1
+    page.screenshot(path=str(artifacts / "11-dashboard-failed-laptop.png"))
+    page.goto(f"{form_job.base_url}/#/jobs/{failed}/review")
+    page.wait_for_selector('.job-card[data-status="failed"]')
+    assert message in page.inner_text(".job-card")
+    assert not page.errors, page.errors

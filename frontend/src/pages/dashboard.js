@@ -138,7 +138,7 @@ export function mountBatch(root, batchId) {
     const cell = (m, t) => {
       const j = b.jobs.find((x) => x.motion_id === m && x.target_character_id === t);
       if (!j) return '<td></td>';
-      return `<td data-job="${esc(j.id)}" data-status="${esc(j.status)}"><a href="${reviewHash(j.id)}">${statusChip(j.status)}</a>${progressBar(j)}${errorHtml(j)}</td>`;
+      return `<td data-job="${esc(j.id)}" data-status="${esc(j.status)}"><a href="${reviewHash(j.id)}">${statusChip(j.status)} ${j.status === 'succeeded' ? 'review →' : j.status === 'queued' || j.status === 'running' ? 'watch →' : 'details →'}</a>${progressBar(j)}${errorHtml(j)}</td>`;
     };
     const pct = Math.round(b.progress * 100);
     body.innerHTML = `<p>${b.name ? `<b>${esc(b.name)}</b> · ` : ''}${statusChip(b.status)} ${b.total} jobs:

@@ -47,6 +47,9 @@ async function showFile(root, file, state) {
   const fig = root.querySelector('.view[data-view=file]');
   const box = fig.querySelector('.view-box');
   box.innerHTML = '<div class="view-status">reading…</div>';
+  const bar = root.querySelector('.controls-bar');
+  bar.innerHTML = '';
+  bar.className = 'controls-bar';
   fig.dataset.loaded = 'false';
   val.innerHTML = `<p>Validating <b>${esc(file.name)}</b> (${formatBytes(file.size)})…</p>`;
   info.innerHTML = '';
