@@ -56,6 +56,53 @@ class SDFParams:
     blend_m: float = 0.02
     geodesic_ramp_m: float = 0.10
     sample_spacing_m: float = 0.02
+    cluster_m: float = 0.04
+
+
+@dataclass
+class VertexClusters:
+    """Vertices grouped into small clusters of one part each (rest-pose voxels of ``size``).
+
+    of_vertex: ``(V,)`` cluster of each vertex; part: ``(C,)`` part of each cluster; members: ``(C, K)`` vertex
+    indices padded with -1; radius: ``(C,)`` bound of the distance of a posed member from the posed centroid
+    (1.25 times the rest-pose bound plus a quarter voxel: skinning bends clusters at joints)."""
+
+    of_vertex: Tensor
+    part: Tensor
+    members: Tensor
+    radius: Tensor
+
+
+def vertex_clusters(vertices: Tensor, vertex_part: Tensor, size: float, max_members: int = 32) -> VertexClusters:
+    """Clusters of the vertices of each part falling in the same rest-pose voxel of edge ``size``, split so
+    that none has more than ``max_members`` vertices (dense regions such as faces and fingers)."""
+    cell = torch.floor(vertices / size).long()
+    cell = cell - cell.min(0).values
+    dims = cell.max(0).values + 1
+    key = ((vertex_part * dims[0] + cell[:, 0]) * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    _, voxel_of = torch.unique(key, return_inverse=True)
+    slot = _slots(voxel_of)
+    _, of_vertex = torch.unique(voxel_of * (len(vertices) + 1) + slot // max_members, return_inverse=True)
+    c_n = int(of_vertex.max()) + 1
+    part = torch.zeros(c_n, dtype=torch.long).scatter_(0, of_vertex, vertex_part)
+    members = torch.full((c_n, max_members), -1, dtype=torch.long)
+    members[of_vertex, _slots(of_vertex)] = torch.arange(len(vertices))
+    keep = (members >= 0).any(0)
+    centre = torch.zeros(c_n, 3, dtype=vertices.dtype).index_add_(0, of_vertex, vertices)
+    centre = centre / torch.bincount(of_vertex, minlength=c_n).to(vertices.dtype)[:, None]
+    spread = (vertices - centre[of_vertex]).norm(dim=-1)
+    radius = torch.zeros(c_n, dtype=vertices.dtype).scatter_reduce_(0, of_vertex, spread, "amax")
+    return VertexClusters(of_vertex, part, members[:, keep], 1.25 * radius + 0.25 * size)
+
+
+def _slots(group: Tensor) -> Tensor:
+    """Rank ``(N,)`` of every element within its group (0, 1, ... in index order)."""
+    order = torch.argsort(group, stable=True)
+    counts = torch.bincount(group)
+    start = torch.cumsum(counts, 0) - counts
+    slot = torch.empty_like(group)
+    slot[order] = torch.arange(len(group)) - start[group[order]]
+    return slot
 
 
 @dataclass
@@ -69,6 +116,7 @@ class PartSDF:
     geodesic_weight: ``(V, S)`` the geodesic ramp weight in 0..1 (see module doc).
     vertex_area: ``(V,)`` a third of the area of the rest triangles around each vertex (m^2).
     allowed: ``(S, S)`` pairs measured (see :meth:`BodyParts.collision_mask`).
+    clusters: small groups of nearby vertices of one part each, for culling (see :func:`vertex_clusters`).
     """
 
     parts: BodyParts
@@ -83,6 +131,7 @@ class PartSDF:
     height: float
     blend: float
     margin: float
+    clusters: VertexClusters | None = None
 
     @property
     def scale_to_180(self) -> float:
@@ -173,6 +222,7 @@ def build_part_sdf(character: Character, parts: BodyParts, params: SDFParams | N
         height=height,
         blend=blend,
         margin=margin,
+        clusters=vertex_clusters(character.vertices.float(), parts.vertex_part, params.cluster_m * s),
     )
     rest = character.vertices.float()[None]
     eye = torch.eye(3, 4).expand(1, parts.num_parts, 3, 4)
@@ -204,8 +254,9 @@ class PairSamples:
     distance: Tensor
 
 
-def _sample_grid(sdf: PartSDF, seg: int, x: Tensor) -> Tensor:
-    """Blended signed distance ``(N,)`` of rest-frame points ``x (N, 3)`` to segment ``seg``."""
+def _sample_grid(sdf: PartSDF, seg: int, x: Tensor, channel: int | None = None) -> Tensor:
+    """Blended signed distance ``(N,)`` of rest-frame points ``x (N, 3)`` to segment ``seg`` (``channel`` 0
+    or 1: the segment or character channel alone)."""
     grid = sdf.grids[seg]
     assert grid is not None
     size = sdf.size[seg].to(x.dtype)
@@ -214,7 +265,10 @@ def _sample_grid(sdf: PartSDF, seg: int, x: Tensor) -> Tensor:
     inside = torch.minimum(torch.maximum(x, lo), lo + extent)
     outside = (x - inside).norm(dim=-1)
     norm = 2.0 * (inside - lo) / extent.clamp_min(1e-12) - 1.0
-    vals = nnf.grid_sample(grid[None].to(x.dtype), norm.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True)
+    g = grid[None] if channel is None else grid[None, channel : channel + 1]
+    vals = nnf.grid_sample(g.to(x.dtype), norm.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True)
+    if channel is not None:
+        return vals.view(-1) + outside
     seg_d, char_d = vals.view(2, -1)
     p = (seg_d / sdf.blend).clamp(0.0, 1.0)
     return p * seg_d + (1.0 - p) * char_d + outside
@@ -222,33 +276,59 @@ def _sample_grid(sdf: PartSDF, seg: int, x: Tensor) -> Tensor:
 
 def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor | None = None) -> PairSamples:
     """Blended signed distances of posed vertices ``(F, V, 3)`` to segments, for every allowed pair (vertex
-    part i, segment j) whose bounding boxes overlap in a frame. ``seg_mats (F, S, 3, 4)`` from
-    :func:`segment_matrices`. Pairs whose boxes do not overlap are farther apart than the grid margin."""
+    part i, segment j) where the vertex may lie within the grid margin of j. ``seg_mats (F, S, 3, 4)`` from
+    :func:`segment_matrices`. Vertices not sampled are farther from the segment than the grid margin.
+
+    Culling, coarse to fine: the posed bounding box of part i against that of j's grid, per frame; then each
+    cluster of nearby vertices (:class:`VertexClusters`), bounded by a sphere around its posed centroid,
+    against j's grid box in j's frame; then the sphere against j's segment distance at its centre.
+    """
     allowed = sdf.allowed if allowed is None else allowed
     f_n, v_n = posed.shape[:2]
     s_n = sdf.parts.num_parts
-    vp = sdf.parts.vertex_part
+    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), sdf.parts.vertex_part, 0.04)
     rot = seg_mats[..., :3]  # (F, S, 3, 3)
     trans = seg_mats[..., 3]  # (F, S, 3)
+    c_n = clusters.part.shape[0]
     with torch.no_grad():
         p = posed.detach()
+        r_all, t_all = rot.detach(), trans.detach()
+        vp = sdf.parts.vertex_part
         idx = vp.view(1, v_n, 1).expand(f_n, v_n, 3)
-        lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amin", include_self=True)
-        hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amax", include_self=True)
+        p_lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amin")
+        p_hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amax")
         corners = sdf.grid_corners().to(p.dtype)  # (S, 8, 3)
-        posed_corners = torch.einsum("fsij,skj->fski", rot.detach(), corners) + trans.detach()[:, :, None, :]
+        posed_corners = torch.einsum("fsij,skj->fski", r_all, corners) + t_all[:, :, None, :]
         g_lo, g_hi = posed_corners.min(dim=2).values, posed_corners.max(dim=2).values
-        overlap = ((lo[:, :, None, :] <= g_hi[:, None, :, :]) & (hi[:, :, None, :] >= g_lo[:, None, :, :])).all(-1)
+        overlap = ((p_lo[:, :, None] <= g_hi[:, None]) & (p_hi[:, :, None] >= g_lo[:, None])).all(-1)  # (F, Si, Sj)
         has_grid = torch.tensor([g is not None for g in sdf.grids])
         overlap &= allowed[None] & has_grid[None, None, :]
+        ov = clusters.of_vertex
+        counts = torch.bincount(ov, minlength=c_n).to(p.dtype)
+        centre = torch.zeros(f_n, c_n, 3, dtype=p.dtype).index_add_(1, ov, p) / counts[None, :, None]
+        radius = clusters.radius.to(p.dtype)[None].expand(f_n, c_n)
+        lo = sdf.origin.to(p.dtype)
+        hi = lo + (sdf.size - 1).to(p.dtype) * sdf.voxel[:, None].to(p.dtype)
     frames, verts, segs, dists = [], [], [], []
     for j in torch.nonzero(overlap.any(dim=(0, 1))).flatten().tolist():
-        f_idx, v_idx = torch.nonzero(overlap[:, vp, j], as_tuple=True)
-        if len(f_idx) == 0:
-            continue
+        with torch.no_grad():
+            f_c, c_sel = torch.nonzero(overlap[:, clusters.part, j], as_tuple=True)  # candidate (frame, cluster)
+            centre_local = torch.einsum("nji,nj->ni", r_all[f_c, j], centre[f_c, c_sel] - t_all[f_c, j])
+            rad = radius[f_c, c_sel]
+            keep = (centre_local - centre_local.clamp(lo[j], hi[j])).norm(dim=-1) <= rad
+            # The segment channel is 1-Lipschitz: a cluster whose centre is farther than margin + radius from
+            # the segment has every vertex beyond the margin (where the blend is the segment channel alone).
+            f_c, c_sel, centre_local, rad = f_c[keep], c_sel[keep], centre_local[keep], rad[keep]
+            keep = _sample_grid(sdf, j, centre_local, channel=0) - rad <= sdf.margin
+            f_c, c_sel = f_c[keep], c_sel[keep]
+            if len(f_c) == 0:
+                continue
+            mem = clusters.members[c_sel]  # (N', K)
+            valid = mem >= 0
+            f_idx = f_c[:, None].expand_as(mem)[valid]
+            v_idx = mem[valid]
         x = posed[f_idx, v_idx]
-        r = rot[f_idx, j]
-        local = torch.einsum("nji,nj->ni", r, x - trans[f_idx, j])  # R^T (x - t)
+        local = torch.einsum("nji,nj->ni", rot[f_idx, j], x - trans[f_idx, j])  # R^T (x - t)
         frames.append(f_idx)
         verts.append(v_idx)
         segs.append(torch.full_like(f_idx, j))
@@ -290,6 +370,8 @@ def distance_matrix(sdf: PartSDF, samples: PairSamples, frames: int) -> Tensor:
 
 __all__ = [
     "REFERENCE_HEIGHT_M",
+    "VertexClusters",
+    "vertex_clusters",
     "PairSamples",
     "PartSDF",
     "SDFParams",
