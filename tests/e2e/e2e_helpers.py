@@ -20,8 +20,13 @@ _PIXELS_JS = """(name) => {
   ctx.drawImage(c, 0, 0, w, h);
   const d = ctx.getImageData(0, 0, w, h).data;
   const lum = new Array(w * h);
-  for (let i = 0; i < w * h; i++) lum[i] = Math.round(0.299 * d[4 * i] + 0.587 * d[4 * i + 1] + 0.114 * d[4 * i + 2]);
-  return { w, h, lum };
+  const red = new Array(w * h);
+  for (let i = 0; i < w * h; i++) {
+    const r = d[4 * i], g = d[4 * i + 1], b = d[4 * i + 2];
+    lum[i] = Math.round(0.299 * r + 0.587 * g + 0.114 * b);
+    red[i] = r - Math.max(g, b) > 60 ? 1 : 0;
+  }
+  return { w, h, lum, red };
 }"""
 
 
@@ -30,6 +35,13 @@ def view_pixels(page: Any, name: str) -> np.ndarray:
     out = page.evaluate(_PIXELS_JS, name)
     assert out is not None, f"no canvas for the {name} view"
     return np.asarray(out["lum"], dtype=np.int16).reshape(out["h"], out["w"])
+
+
+def red_fraction(page: Any, name: str) -> float:
+    """Share of a view's pixels that are clearly red (penetration highlights, contact markers)."""
+    out = page.evaluate(_PIXELS_JS, name)
+    assert out is not None, f"no canvas for the {name} view"
+    return float(np.asarray(out["red"]).mean())
 
 
 def bright_fraction(lum: np.ndarray, threshold: int = 140) -> float:

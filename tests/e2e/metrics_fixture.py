@@ -23,6 +23,7 @@ from retarget_core.metrics.report import (
 )
 
 CONTACT_FIRST, CONTACT_LAST = 5, 20
+PENETRATING = {"before": 4000, "after": 1500}  # vertices 0..n-1 listed as penetrating on even frames
 
 
 def _summary(frames: int, fps: float, scale: float, pen: float, skate: float, contact: float) -> MetricSummary:
@@ -83,8 +84,8 @@ def metrics_with_series(frames: int, fps: float, target_height_m: float = 1.73) 
         "source_i": [100 + k for _, k in rows], "source_j": [5000 + k for _, k in rows],
         "target_i": [200 + k for _, k in rows], "target_j": [6000 + k for _, k in rows],
     }  # fmt: skip
-    for name, n in (("before", 40), ("after", 10)):
-        pen_rows = [(f, v) for f in range(0, frames, 2) for v in range(1000, 1000 + n)]
+    for name, n in PENETRATING.items():
+        pen_rows = [(f, v) for f in range(0, frames, 2) for v in range(n)]
         data[name]["penetration_vertices"] = {
             "frame": [f for f, _ in pen_rows], "vertex": [v for _, v in pen_rows], "depth": [0.5 for _ in pen_rows],
         }  # fmt: skip

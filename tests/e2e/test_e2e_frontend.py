@@ -23,11 +23,12 @@ from e2e_helpers import (
     bright_fraction,
     changed_fraction,
     overflow,
+    red_fraction,
     seek,
     view_frames,
     view_pixels,
 )
-from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, metrics_with_series
+from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, PENETRATING, metrics_with_series
 
 pytestmark = [pytest.mark.e2e, pytest.mark.service]
 
@@ -379,13 +380,20 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     seek(page, CONTACT_LAST + 5)
     after_no_contact = int(page.get_attribute('.view[data-view="after"]', "data-markers"))
     assert after_no_contact == 2, after_no_contact  # only the two planted foot joints of one side
-    # Penetrating vertices highlighted on the frames that list them.
+    # Penetrating vertices painted red on the frames that list them (contact markers off: they are red too).
+    page.uncheck('[data-toggle="contacts"]')
     seek(page, 10)
-    assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == "10"
-    assert page.get_attribute('.view[data-view="before"]', "data-penetrating") == "40"
+    assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == str(PENETRATING["after"])
+    assert page.get_attribute('.view[data-view="before"]', "data-penetrating") == str(PENETRATING["before"])
+    red_on = {v: red_fraction(page, v) for v in ("before", "after")}
+    page.screenshot(path=str(artifacts / "08-review-fixture-penetration-frame10.png"))
     seek(page, 11)
     assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == "0"
-    page.uncheck('[data-toggle="contacts"]')
+    red_off = {v: red_fraction(page, v) for v in ("before", "after")}
+    for v in ("before", "after"):
+        assert red_on[v] > 0.002 and red_off[v] < red_on[v] / 5, (v, red_on, red_off)
+    # Each view paints its own list (before lists more vertices than after), even when the two files are equal.
+    assert red_on["before"] > 1.3 * red_on["after"], red_on
     seek(page, CONTACT_FIRST + 2)
     assert page.get_attribute('.view[data-view="after"]', "data-markers") == "0"
     page.check('[data-toggle="contacts"]')

@@ -106,8 +106,10 @@ export class Chart {
     ctx.fillText(String(n - 1), l + pw, t + ph + 3);
     for (const [name, s] of [['before', this.data.before], ['after', this.data.after]]) {
       if (!s) continue;
+      // "before" wide and translucent under a thin "after": both stay visible where they are equal.
       ctx.strokeStyle = COLORS[name];
-      ctx.lineWidth = name === 'after' ? 1.8 : 1.4;
+      ctx.globalAlpha = name === 'before' ? 0.75 : 1;
+      ctx.lineWidth = name === 'before' ? 3.2 : 1.5;
       ctx.beginPath();
       let open = false;
       s.values.forEach((v, i) => {
@@ -115,11 +117,13 @@ export class Chart {
         if (!open) { ctx.moveTo(X(i), Y(v)); open = true; } else ctx.lineTo(X(i), Y(v));
       });
       ctx.stroke();
+      ctx.globalAlpha = 1;
       // isolated points (a single defined frame between gaps) as dots
       ctx.fillStyle = COLORS[name];
       s.values.forEach((v, i) => {
         if (v !== null && (s.values[i - 1] ?? null) === null && (s.values[i + 1] ?? null) === null) {
-          ctx.fillRect(X(i) - 1.5, Y(v) - 1.5, 3, 3);
+          const r = name === 'before' ? 3 : 1.5;
+          ctx.fillRect(X(i) - r, Y(v) - r, 2 * r, 2 * r);
         }
       });
     }

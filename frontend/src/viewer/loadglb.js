@@ -14,9 +14,18 @@ export function parseGltf(buffer) {
   });
 }
 
-/** A second, independent copy of a loaded glTF (skinned meshes re-bound to the copied bones). */
+/**
+ * A second, independent copy of a loaded glTF: skinned meshes re-bound to the copied bones, and geometry and
+ * materials copied too (a view paints its own vertex colours). Clips are shared (they are read-only).
+ */
 export function cloneGltf(gltf) {
-  return { scene: SkeletonUtils.clone(gltf.scene), animations: gltf.animations };
+  const scene = SkeletonUtils.clone(gltf.scene);
+  scene.traverse((o) => {
+    if (!o.isMesh) return;
+    o.geometry = o.geometry.clone();
+    o.material = Array.isArray(o.material) ? o.material.map((m) => m.clone()) : o.material.clone();
+  });
+  return { scene, animations: gltf.animations };
 }
 
 /** True when two ArrayBuffers hold the same bytes. */
