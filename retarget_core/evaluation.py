@@ -28,12 +28,17 @@ from pydantic import BaseModel, Field
 from retarget_core.body_parts import BodyParts, body_parts
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
-from retarget_core.contacts.correspondence import ContactConstraints, build_correspondence, no_contacts, transfer_contacts
+from retarget_core.contacts.correspondence import (
+    ContactConstraints,
+    build_correspondence,
+    no_contacts,
+    transfer_contacts,
+)
 from retarget_core.contacts.foot_contact import FootContacts, detect_foot_contacts
 from retarget_core.contacts.self_contact import SelfContacts, detect_self_contacts
 from retarget_core.energy.sdf import PartSDF, build_part_sdf
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
-from retarget_core.metrics.compute import ClipMeasures, MetricParams, compute_metrics
+from retarget_core.metrics.compute import ClipMeasures, compute_metrics
 from retarget_core.metrics.report import MetricsReport, SelfContactEntry, SourceContacts, build_metrics_report
 from retarget_core.motion import Motion
 
@@ -114,7 +119,7 @@ def source_contacts_model(found: SourceContactResult, constraints: ContactConstr
         self_contacts=sc.count,
         self_contact_frames=int(sc.frames_with_contact().sum()),
         constraints=constraints.count,
-        pairs=[SelfContactEntry(**e) for e in sc.summary()],  # type: ignore[arg-type]
+        pairs=[SelfContactEntry.model_validate(e) for e in sc.summary()],
         foot_contact_frames=int(found.feet.labels.any(-1).sum()),
         source_body=found.body_name,
     )

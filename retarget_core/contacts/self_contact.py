@@ -134,9 +134,9 @@ def detect_self_contacts(
     group_faces = [faces[(weights[faces, s] >= params.group_threshold).all(1)] for s in range(len(names))]
     present = [i for i, g in enumerate(groups) if len(g) > 0]
     hands = [parts.index(h) for h in HAND_SEGMENTS if parts.find(h) is not None and len(groups[parts.index(h)]) > 0]
-    empty = SelfContacts(f_n, names, *(torch.zeros(0, dtype=torch.long) for _ in range(3)),
-                         torch.zeros(0, params.pairs, 2, dtype=torch.long), torch.zeros(0, params.pairs),
-                         torch.zeros(0, dtype=torch.bool), torch.zeros(0), params)  # fmt: skip
+    none = torch.zeros(0, dtype=torch.long)
+    empty = SelfContacts(f_n, names, none, none, none, torch.zeros(0, params.pairs, 2, dtype=torch.long),
+                         torch.zeros(0, params.pairs), torch.zeros(0, dtype=torch.bool), torch.zeros(0), params)  # fmt: skip
     if not hands or f_n == 0:
         return empty
     lo = np.zeros((f_n, len(names), 3), dtype=np.float32)

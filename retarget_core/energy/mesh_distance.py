@@ -204,7 +204,9 @@ def inside_grid(origin: np.ndarray, voxel: float, shape: tuple[int, int, int], v
     """``shape`` bool (indexed x, y, z): grid points ``origin + i * voxel`` inside the closed mesh (ray parity
     along x, y and z, majority vote)."""
     tri = np.asarray(vertices, dtype=np.float64)[faces]
-    votes = sum(_parity_along(a, origin, voxel, shape, tri).astype(np.int8) for a in range(3))
+    votes = np.zeros(shape, dtype=np.int8)
+    for a in range(3):
+        votes += _parity_along(a, origin, voxel, shape, tri)
     return votes >= 2
 
 

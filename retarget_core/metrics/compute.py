@@ -19,7 +19,14 @@ from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContactParams, FootContacts, detect_foot_contacts
-from retarget_core.energy.sdf import REFERENCE_HEIGHT_M, PartSDF, distance_matrix, sample_pairs, segment_matrices, vertex_depths
+from retarget_core.energy.sdf import (
+    REFERENCE_HEIGHT_M,
+    PartSDF,
+    distance_matrix,
+    sample_pairs,
+    segment_matrices,
+    vertex_depths,
+)
 from retarget_core.metrics.report import MethodMetrics, MetricSummary, Series, measure
 from retarget_core.motion import Motion
 
@@ -142,6 +149,10 @@ def _mean(x: Tensor) -> float | None:
     return float(x.mean()) if x.numel() else None
 
 
+def _scaled(x: float | None, factor: float) -> float | None:
+    return None if x is None else x * factor
+
+
 def _series(values: Tensor, unit: str, valid: Tensor | None = None, digits: int = 4) -> Series:
     vals = [round(float(v), digits) for v in values.tolist()]
     out: list[float | None] = list(vals)
@@ -252,9 +263,9 @@ def summarize(
         foot_contact_frames=int(planted.any(-1).sum()) if planted.numel() else 0,
         ground_penetration_mean=measure(float(ground_pen.mean()) * cm if f_n else None, s, "cm"),
         ground_penetration_max=measure(float(ground_pen.max()) * cm if f_n else None, s, "cm"),
-        global_position_error=measure(_mean(gpe) * cm if gpe is not None and gpe.numel() else None, s, "cm"),
+        global_position_error=measure(_scaled(_mean(gpe) if gpe is not None else None, cm), s, "cm"),
         global_position_mse=measure(gpe_mse * cm**2 if gpe_mse is not None else None, s**2, "cm^2"),
-        mpjpe=measure(_mean(mpjpe) * cm if mpjpe is not None and mpjpe.numel() else None, s, "cm"),
+        mpjpe=measure(_scaled(_mean(mpjpe) if mpjpe is not None else None, cm), s, "cm"),
         m_c=measure(m_c * cm**2 if m_c is not None else None, s**2, "cm^2"),
         m_i=measure(m_i * cm**2 if m_i is not None else None, s**2, "cm^2"),
         m_o=measure(m_o * cm**2 if m_o is not None else None, s**2, "cm^2"),

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from retarget_core import rotations as rot
+from retarget_core.bodies import load_preset
 from retarget_core.body_parts import (
     CLUSTERS,
     END_EFFECTOR_SEGMENTS,
@@ -13,7 +14,6 @@ from retarget_core.body_parts import (
     mapping_by_name,
     segment_of_joints,
 )
-from retarget_core.bodies import load_preset
 from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
 from retarget_core.character import Character
 from retarget_core.skeleton import Skeleton

@@ -15,7 +15,12 @@ from retarget_core import rotations as rot
 from retarget_core.body_parts import body_parts
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContacts
-from retarget_core.energy.mesh_distance import MeshDistance, cap_boundary_loops, closest_point_distance, signed_distance_grid
+from retarget_core.energy.mesh_distance import (
+    MeshDistance,
+    cap_boundary_loops,
+    closest_point_distance,
+    signed_distance_grid,
+)
 from retarget_core.energy.sdf import (
     _sample_grid,
     build_part_sdf,
@@ -29,8 +34,8 @@ from retarget_core.energy.terms import (
     end_effector_energy,
     foot_energy,
     interpenetration_energy,
-    rotation_energy,
     root_velocity_energy,
+    rotation_energy,
     total_energy,
     vertex_contact_energy,
     weak_energy,
