@@ -119,10 +119,10 @@ def render(motion_path: Path, source: str, frame: int | None, out: Path, target:
         tv = tc.pose_vertices(tr, tp)
         depth = vertex_depths(sdf, sample_pairs(sdf, tv, segment_matrices(tc, tparts, tr, tp)), 1)[0].numpy()
         fd = depth[tc.faces.numpy()].max(1) * sdf.scale_to_180 * 100  # cm at 1.80 m
-        cmap = plt.get_cmap("inferno_r")
+        cmap = plt.get_cmap("autumn_r")  # yellow (shallow) to red (deep)
         trgb = np.tile(np.array([0.78, 0.78, 0.8]), (len(fd), 1))
         hot = fd > 0.3
-        trgb[hot] = np.asarray(cmap(np.clip(fd[hot] / 8.0, 0, 1)))[:, :3]
+        trgb[hot] = np.asarray(cmap(0.25 + 0.75 * np.clip(fd[hot] / 8.0, 0, 1)))[:, :3]
         for k, (name, view) in enumerate(VIEWS.items()):
             ax = fig.add_subplot(rows, 4, 5 + k, projection="3d")
             draw_mesh(ax, tv[0].numpy(), tc.faces.numpy(), trgb, view)
@@ -130,7 +130,7 @@ def render(motion_path: Path, source: str, frame: int | None, out: Path, target:
         ax = fig.add_subplot(rows, 4, 8)
         ax.hist(fd[fd > 0.3], bins=30, color="darkorange")
         ax.set_title(f"penetrating triangles by depth (max {fd.max():.1f} cm at 1.80 m)", fontsize=10)
-        ax.set_xlabel("depth, cm at 1.80 m (colour scale 0-8 cm, light to dark)")
+        ax.set_xlabel("depth, cm at 1.80 m (colour: yellow shallow to red 8 cm or more)")
         info["target_max_penetration_cm_at_180"] = float(fd.max())
     fig.subplots_adjust(left=0.01, right=0.99, top=0.92, bottom=0.06, wspace=0.02, hspace=0.1)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -154,6 +154,13 @@ def measure_job(
     """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
     "after", against "before") on the target; ``reference`` is a ground-truth motion on the target if any.
     All motions must have the same frame count (the pipeline's motions do)."""
+    lengths = {"source view": source_view.num_frames, "before": before.num_frames}
+    if after is not None:
+        lengths["after"] = after.num_frames
+    if reference is not None:
+        lengths["reference"] = reference.num_frames
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"the motions to measure must have the same number of frames, got {lengths}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
     found = source_contacts or detect_source_contacts(source_body, source_mapping, source_view)

@@ -181,6 +181,8 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
     assert r.before.summary.contact_distance_mean.value is not None
     assert r.after is not None and r.after.summary.mpjpe.value == pytest.approx(0.0, abs=1e-6)
     assert set(r.timings_s) == {"contacts", "correspondence", "sdf", "metrics"}
+    with pytest.raises(ValueError, match="same number of frames"):
+        measure_job(src, src_map, view, tgt, tgt_map, before.slice(0, 3))
 
 
 def test_copy_baseline_penetration_grows_with_bulk(shared_data: Path) -> None:
