@@ -8,6 +8,7 @@ test-artifacts/e2e/.
 
 from __future__ import annotations
 
+import base64
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -215,6 +216,13 @@ def test_keyboard_plays_pauses_and_steps(new_page: Any, form_job: FormJob) -> No
     page.keyboard.press("Space")
     page.wait_for_function("window.__viewer.playing === true")
     page.wait_for_function("window.__viewer.frame >= 3", timeout=20_000)
+    for _ in range(5):  # frame-locked while playing: every view on the timeline's frame (one JS turn, atomic)
+        locked = page.evaluate(
+            "(() => { const f = window.__viewer.frame; return Object.values(window.__viewer.views())"
+            ".filter((v) => v.loaded).every((v) => v.frame === f); })()"
+        )
+        assert locked
+        page.wait_for_timeout(120)
     page.keyboard.press("Space")
     page.wait_for_function("window.__viewer.playing === false")
     stopped = page.evaluate("window.__viewer.frame")
@@ -304,8 +312,17 @@ def test_share_link_opens_the_review_without_leaking_the_key(new_page: Any, form
     other = new_page(LAPTOP)
     other.goto(url)
     other.wait_for_selector("#api-key")
+    other.fill("#api-key", "not-a-key")
+    other.click(".key-form button[type=submit]")
+    other.wait_for_selector('.key-status[data-ok="false"]')
+    assert "key" in other.inner_text(".key-status").lower()
+    other.goto(url)
+    other.wait_for_selector(".banner:not([hidden])")  # the service rejected the stored key: said on every page
+    other.goto(f"{form_job.base_url}/#/settings")
     other.fill("#api-key", form_job.key)
     other.click(".key-form button[type=submit]")
+    other.wait_for_url("**/#/upload")  # saved and checked with GET /v1/me
+    other.goto(url)
     other.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
     assert other.evaluate("window.__viewer.jobId") == form_job.job_id
 
@@ -408,11 +425,16 @@ def test_single_file_viewer_validates_and_plays(
     new_page: Any, form_job: FormJob, tmp_path: Path, artifacts: Path
 ) -> None:
     glb = httpx.get(f"{form_job.base_url}{form_job.job['results']['result_glb']}", headers={"X-API-Key": form_job.key})
-    good = tmp_path / "result.glb"
-    good.write_bytes(glb.content)
     page = new_page(LAPTOP)
     page.goto(f"{form_job.base_url}/#/view")  # no key needed: nothing is uploaded
-    page.set_input_files("#glb-file", str(good))
+    # Dropped on the page (a real DataTransfer with the file in it).
+    data = base64.b64encode(glb.content).decode()
+    transfer = page.evaluate_handle(
+        """(b64) => { const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const dt = new DataTransfer(); dt.items.add(new File([bytes], 'result.glb')); return dt; }""",
+        data,
+    )
+    page.dispatch_event("[data-drop=file]", "drop", {"dataTransfer": transfer})
     page.wait_for_selector(".validation[data-done]", timeout=60_000)
     assert page.get_attribute(".validation", "data-done") == "valid", page.inner_text(".validation")
     assert page.get_attribute(".validation-summary", "data-errors") == "0"
@@ -480,4 +502,27 @@ def test_batch_from_the_form_and_errors_in_words(
     page.goto(f"{form_job.base_url}/#/jobs/{failed}/review")
     page.wait_for_selector('.job-card[data-status="failed"]')
     assert message in page.inner_text(".job-card")
+    assert not page.errors, page.errors
+
+
+def test_review_without_a_source_view(new_page: Any, form_job: FormJob) -> None:
+    """A job without source.glb (older runs): the source view says so, before and after still play frame-locked."""
+    page = new_page(LAPTOP)
+
+    def strip_source(route: Any) -> None:
+        job = route.fetch().json()
+        job["results"].pop("source_glb", None)
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(job))
+
+    page.route(f"**/v1/jobs/{form_job.job_id}", strip_source)
+    page.goto(f"{form_job.base_url}/#/settings")
+    page.evaluate("(k) => localStorage.setItem('retarget.apiKey', k)", form_job.key)
+    page.goto(f"{form_job.base_url}/#/jobs/{form_job.job_id}/review")
+    page.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
+    assert page.get_attribute('.view[data-view="source"]', "data-loaded") == "false"
+    assert "no source view for this job" in page.inner_text('.view[data-view="source"]')
+    assert page.locator('[data-dl="source_glb"]').count() == 0
+    seek(page, 17)
+    assert view_frames(page) == {"before": 17, "after": 17}
+    assert bright_fraction(view_pixels(page, "after")) > 0.01
     assert not page.errors, page.errors
