@@ -110,6 +110,9 @@ def main(argv: list[str] | None = None) -> None:
         os.environ["RETARGET_API_DATA_DIR"] = str(settings.data_dir.resolve())
         supervisor = WorkerSupervisor(worker_commands(settings, args.concurrency))
         supervisor.start()
+    # uvicorn re-raises SIGTERM after its own shutdown; with Python's default action the process would die there
+    # and leave the workers running. A handler that exits normally lets ``finally`` stop them.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     try:
         uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     finally:
