@@ -3,8 +3,8 @@
 - :func:`detect_source_contacts`: hand self-contacts and foot contacts of the source motion on its body.
 - :func:`measure_job`: the metrics report of one motion x target from the motions the pipeline made (the
   source on its body, "before" and optionally "after" on the target).
-- :func:`run_evaluation`: methods x motions x bodies, a table split into skinny / bulky bodies and contact /
-  no-contact clips like paper 1's appendix D, printed and written as JSON and Markdown.
+- :func:`run_evaluation`: methods x motions x bodies, a table split into skinny / medium / bulky bodies and
+  contact / no-contact clips like paper 1's appendix D, printed and written as JSON and Markdown.
 
 Methods are functions ``(source: LoadedMotion, target: LoadedCharacter) -> Motion`` registered in
 :data:`METHODS` by name; ``copy`` (the baseline) is built in and is always measured first, because every other
@@ -215,7 +215,7 @@ class BodyInfo(BaseModel):
     name: str
     height_m: float
     bulk_index: float = Field(description="mesh volume / height^3 (higher is bulkier)")
-    group: str = Field(description="skinny or bulky")
+    group: str = Field(description="skinny, medium or bulky")
 
 
 class ClipInfo(BaseModel):
@@ -224,6 +224,7 @@ class ClipInfo(BaseModel):
     fps: float
     contact_frames: int = Field(description="frames with a hand self-contact on the source body")
     group: str = Field(description="contact or no-contact")
+    contacts: list[dict[str, Any]] = Field(default_factory=list, description="(hand, other part, frames) found")
 
 
 class EvalRow(BaseModel):
@@ -270,8 +271,13 @@ class EvalTable(BaseModel):
         out += [line(g) for g in self.per_body]
         out += ["", "## Bodies", "", "| body | height m | bulk index | group |", "|---|---|---|---|"]
         out += [f"| {b.name} | {b.height_m:.3f} | {b.bulk_index:.4f} | {b.group} |" for b in self.bodies]
-        out += ["", "## Clips", "", "| clip | frames | fps | contact frames | group |", "|---|---|---|---|---|"]
-        out += [f"| {c.name} | {c.frames} | {c.fps:g} | {c.contact_frames} | {c.group} |" for c in self.clips]
+        out += ["", "## Clips", "", "| clip | frames | fps | contact frames | group | main contacts (frames) |", "|---|---|---|---|---|---|"]
+        out += [
+            f"| {c.name} | {c.frames} | {c.fps:g} | {c.contact_frames} | {c.group} | "
+            + ", ".join(f"{e['hand']}-{e['other']} ({e['frames']})" for e in c.contacts[:3])
+            + " |"
+            for c in self.clips
+        ]
         return "\n".join(out) + "\n"
 
 
@@ -299,6 +305,21 @@ def _mean_values(rows: list[EvalRow]) -> dict[str, float | None]:
     return out
 
 
+def bulk_groups(indices: list[float]) -> list[str]:
+    """By rank of bulk index: the lowest third (rounded) "skinny", the highest third "bulky", the rest
+    "medium" (7 bodies: 2, 3, 2; 6 bodies: 2, 2, 2 like paper 1's 3 + 3 split into thirds)."""
+    n = len(indices)
+    k = round(n / 3)
+    order = sorted(range(n), key=lambda i: indices[i])
+    out = ["medium"] * n
+    for rank, i in enumerate(order):
+        if rank < k:
+            out[i] = "skinny"
+        elif rank >= n - k:
+            out[i] = "bulky"
+    return out
+
+
 def bulk_index(character: Character) -> float:
     """Volume of the rest mesh over height cubed: a shape measure independent of size."""
     tri = character.vertices[character.faces].double()
@@ -321,8 +342,8 @@ def run_evaluation(
     """Run ``methods`` (default: copy) on every motion x body and summarise.
 
     motions: BVH/glTF/FBX files; bodies: character files or ``builtin:<preset>``; ``max_frames``: first frames
-    of each clip (after resampling to ``fps``; None: all). Bodies are split by bulk index at the median
-    (``body_groups`` overrides: name -> "skinny"/"bulky"); a clip is a contact clip when at least
+    of each clip (after resampling to ``fps``; None: all). Bodies are grouped by bulk index into thirds
+    (:func:`bulk_groups`; ``body_groups`` overrides: name -> group); a clip is a contact clip when at least
     ``contact_fraction`` of its frames have a hand self-contact on the source body. Writes ``eval.json`` and
     ``eval.md`` into ``out_dir`` when given."""
     from retarget_core.resample import resample
@@ -342,10 +363,8 @@ def run_evaluation(
         loaded = load_character(b)
         targets.append(loaded)
         infos.append(BodyInfo(name=loaded.character.name, height_m=round(loaded.character.height, 4), bulk_index=round(bulk_index(loaded.character), 5), group=""))
-    ranks = sorted(i.bulk_index for i in infos)
-    median = ranks[(len(ranks) - 1) // 2] if ranks else 0.0
-    for info in infos:
-        info.group = (body_groups or {}).get(info.name) or ("skinny" if info.bulk_index <= median else "bulky")
+    for info, group in zip(infos, bulk_groups([i.bulk_index for i in infos]), strict=True):
+        info.group = (body_groups or {}).get(info.name) or group
 
     rows: list[EvalRow] = []
     clips: list[ClipInfo] = []
@@ -370,7 +389,8 @@ def run_evaluation(
         found = detect_source_contacts(body, body_map, view)
         contact_frames = int(found.self_contacts.frames_with_contact().sum())
         group = "contact" if contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0 else "no-contact"
-        clips.append(ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps, contact_frames=contact_frames, group=group))
+        pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in found.self_contacts.summary()[:6]]
+        clips.append(ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps, contact_frames=contact_frames, group=group, contacts=pairs))
         say(f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({group}), contacts {time.perf_counter() - t:.1f}s")
         for target, info in zip(targets, infos, strict=True):
             tc = target.character
@@ -388,7 +408,7 @@ def run_evaluation(
     clip_group = {c.name: c.group for c in clips}
     groups: list[EvalGroup] = []
     for m in order:
-        for bg in ("skinny", "bulky", "all"):
+        for bg in ("skinny", "medium", "bulky", "all"):
             for cg in ("contact", "no-contact", "all"):
                 sel = [r for r in rows if r.method == m and bg in ("all", body_group[r.body]) and cg in ("all", clip_group[r.clip])]
                 if sel:
@@ -429,6 +449,8 @@ def write_eval_table(table: EvalTable, out_dir: Path) -> tuple[Path, Path]:
 __all__ = [
     "METHODS",
     "EvalTable",
+    "bulk_groups",
+    "bulk_index",
     "JobMeasurement",
     "SourceContactResult",
     "detect_source_contacts",

@@ -200,3 +200,34 @@ def test_copy_baseline_penetration_grows_with_bulk(shared_data: Path) -> None:
         summary = summarize(measure_clip(tgt.character, tgt.mapping, sdf, motion)).summary
         volume[name] = summary.penetration_volume.value_at_180
     assert volume["mh_male_bulky"] > 5 * volume["mh_female_skinny"], volume
+
+
+def test_bulk_groups_and_index() -> None:
+    from retarget_core.evaluation import bulk_groups, bulk_index
+
+    assert bulk_groups([0.3, 0.1, 0.2, 0.7, 0.5, 0.6, 0.4]) == ["medium", "skinny", "skinny", "bulky", "medium", "bulky", "medium"]
+    assert bulk_groups([2.0, 1.0]) == ["bulky", "skinny"]
+    ch, _ = two_boxes()
+    volume = 0.4**3 + 0.1**3
+    assert bulk_index(ch) == pytest.approx(volume / ch.height**3, rel=1e-4)
+
+
+def test_run_evaluation_writes_the_table(shared_data: Path, tmp_path: Path) -> None:
+    from retarget_core.evaluation import run_evaluation
+
+    table = run_evaluation(
+        [shared_data / "motions" / "cmu" / "002_08.bvh"],
+        [shared_data / "characters" / "mh_female_skinny.glb", shared_data / "characters" / "mh_male_bulky.glb"],
+        out_dir=tmp_path,
+        max_frames=40,
+        log=None,
+    )
+    assert [r.body for r in table.rows] == ["mh_female_skinny", "mh_male_bulky"]
+    assert {b.group for b in table.bodies} == {"skinny", "bulky"}
+    assert table.clips[0].frames == 40 and table.clips[0].fps == 30.0
+    per_body = {g.bodies: g.values["penetration_volume"] for g in table.per_body}
+    assert per_body["mh_male_bulky"] > per_body["mh_female_skinny"]
+    assert json.loads((tmp_path / "eval.json").read_text())["methods"] == ["copy"]
+    assert "| copy | skinny |" in (tmp_path / "eval.md").read_text()
+    with pytest.raises(ValueError, match="unknown method"):
+        run_evaluation([], [], methods=["nope"])
