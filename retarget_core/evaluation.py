@@ -17,7 +17,8 @@ import hashlib
 import json
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,25 @@ def part_sdf_for(character: Character, mapping: JointMapping) -> tuple[BodyParts
 
 # --- one job ------------------------------------------------------------------------------------------------
 
+MEASURE_THREADS = 1
+"""Torch intra-op threads while measuring. The queries are many small tensor operations; on a small, shared
+CPU (2 cores, other processes running) OpenMP's parallel regions cost more than they save: a 300-frame job
+took 22 s with torch's default 2 threads and 5 s with 1 (benchmarks/results/metrics_benchmark*.json)."""
+
+
+@contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads (None: leave as is), restoring the setting after."""
+    if n is None or n == torch.get_num_threads():
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
 
 @dataclass
 class SourceContactResult:
@@ -150,10 +170,33 @@ def measure_job(
     include_series: bool = True,
     context: dict[str, Any] | None = None,
     notes: list[str] | None = None,
+    threads: int | None = MEASURE_THREADS,
 ) -> JobMeasurement:
     """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
     "after", against "before") on the target; ``reference`` is a ground-truth motion on the target if any.
-    All motions must have the same frame count (the pipeline's motions do)."""
+    All motions must have the same frame count (the pipeline's motions do). ``threads``: torch threads
+    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting)."""
+    with torch_threads(threads):
+        return _measure_job(
+            source_body, source_mapping, source_view, target, target_mapping, before, after, reference,
+            source_contacts, include_series, context, notes,
+        )  # fmt: skip
+
+
+def _measure_job(
+    source_body: Character,
+    source_mapping: JointMapping,
+    source_view: Motion,
+    target: Character,
+    target_mapping: JointMapping,
+    before: Motion,
+    after: Motion | None,
+    reference: Motion | None,
+    source_contacts: SourceContactResult | None,
+    include_series: bool,
+    context: dict[str, Any] | None,
+    notes: list[str] | None,
+) -> JobMeasurement:
     lengths = {"source view": source_view.num_frames, "before": before.num_frames}
     if after is not None:
         lengths["after"] = after.num_frames
@@ -338,6 +381,7 @@ def run_evaluation(
     contact_fraction: float = 0.1,
     body_groups: dict[str, str] | None = None,
     log: Callable[[str], None] | None = print,
+    threads: int | None = MEASURE_THREADS,
 ) -> EvalTable:
     """Run ``methods`` (default: copy) on every motion x body and summarise.
 
@@ -345,7 +389,23 @@ def run_evaluation(
     of each clip (after resampling to ``fps``; None: all). Bodies are grouped by bulk index into thirds
     (:func:`bulk_groups`; ``body_groups`` overrides: name -> group); a clip is a contact clip when at least
     ``contact_fraction`` of its frames have a hand self-contact on the source body. Writes ``eval.json`` and
-    ``eval.md`` into ``out_dir`` when given."""
+    ``eval.md`` into ``out_dir`` when given. ``threads``: torch threads during the run (see
+    :data:`MEASURE_THREADS`)."""
+    with torch_threads(threads):
+        return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups, log)
+
+
+def _run_evaluation(
+    motions: list[Path],
+    bodies: list[str | Path],
+    methods: list[str] | None,
+    out_dir: Path | None,
+    max_frames: int | None,
+    fps: float | None,
+    contact_fraction: float,
+    body_groups: dict[str, str] | None,
+    log: Callable[[str], None] | None,
+) -> EvalTable:
     from retarget_core.resample import resample
     from retarget_core.source_body import source_body_for
 
@@ -453,8 +513,10 @@ __all__ = [
     "bulk_index",
     "JobMeasurement",
     "SourceContactResult",
+    "MEASURE_THREADS",
     "detect_source_contacts",
     "measure_job",
+    "torch_threads",
     "part_sdf_for",
     "register_method",
     "run_evaluation",

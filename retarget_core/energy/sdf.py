@@ -310,11 +310,17 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
         lo = sdf.origin.to(p.dtype)
         hi = lo + (sdf.size - 1).to(p.dtype) * sdf.voxel[:, None].to(p.dtype)
     frames, verts, segs, dists = [], [], [], []
+    # Gathers use index_select on flattened tensors: advanced indexing is far slower on small CPUs.
+    flat_posed = posed.reshape(-1, 3)
+    flat_centre, flat_radius = centre.reshape(-1, 3), radius.reshape(-1)
     for j in torch.nonzero(overlap.any(dim=(0, 1))).flatten().tolist():
         with torch.no_grad():
-            f_c, c_sel = torch.nonzero(overlap[:, clusters.part, j], as_tuple=True)  # candidate (frame, cluster)
-            centre_local = torch.einsum("nji,nj->ni", r_all[f_c, j], centre[f_c, c_sel] - t_all[f_c, j])
-            rad = radius[f_c, c_sel]
+            cand = overlap[:, :, j].contiguous().index_select(1, clusters.part)  # (F, C)
+            f_c, c_sel = torch.nonzero(cand, as_tuple=True)  # candidate (frame, cluster)
+            key = f_c * c_n + c_sel
+            r_j, t_j = r_all[:, j].index_select(0, f_c), t_all[:, j].index_select(0, f_c)
+            centre_local = torch.einsum("nji,nj->ni", r_j, flat_centre.index_select(0, key) - t_j)
+            rad = flat_radius.index_select(0, key)
             keep = (centre_local - centre_local.clamp(lo[j], hi[j])).norm(dim=-1) <= rad
             # The segment channel is 1-Lipschitz: a cluster whose centre is farther than margin + radius from
             # the segment has every vertex beyond the margin (where the blend is the segment channel alone).
@@ -323,12 +329,12 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
             f_c, c_sel = f_c[keep], c_sel[keep]
             if len(f_c) == 0:
                 continue
-            mem = clusters.members[c_sel]  # (N', K)
+            mem = clusters.members.index_select(0, c_sel)  # (N', K)
             valid = mem >= 0
-            f_idx = f_c[:, None].expand_as(mem)[valid]
-            v_idx = mem[valid]
-        x = posed[f_idx, v_idx]
-        local = torch.einsum("nji,nj->ni", rot[f_idx, j], x - trans[f_idx, j])  # R^T (x - t)
+            f_idx = f_c[:, None].expand_as(mem).masked_select(valid)
+            v_idx = mem.masked_select(valid)
+        x = flat_posed.index_select(0, f_idx * v_n + v_idx)
+        local = torch.einsum("nji,nj->ni", rot[:, j].index_select(0, f_idx), x - trans[:, j].index_select(0, f_idx))
         frames.append(f_idx)
         verts.append(v_idx)
         segs.append(torch.full_like(f_idx, j))
@@ -339,14 +345,19 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
     return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
 
 
+def _pair_values(table: Tensor, samples: PairSamples) -> Tensor:
+    """``table (V, S)`` at each sample's (vertex, part)."""
+    return table.reshape(-1).index_select(0, samples.vertex * table.shape[1] + samples.part)
+
+
 def effective_depth(sdf: PartSDF, samples: PairSamples, subtract_rest: bool = True, geodesic: bool = True) -> Tensor:
     """Per sample ``(N,)``: penetration depth (m, >= 0) beyond the bind pose's, times the geodesic weight."""
     depth = -samples.distance
     if subtract_rest:
-        depth = depth - sdf.rest_depth[samples.vertex, samples.part].to(depth.dtype)
+        depth = depth - _pair_values(sdf.rest_depth, samples).to(depth.dtype)
     depth = depth.clamp_min(0.0)
     if geodesic:
-        depth = depth * sdf.geodesic_weight[samples.vertex, samples.part].to(depth.dtype)
+        depth = depth * _pair_values(sdf.geodesic_weight, samples).to(depth.dtype)
     return depth
 
 
@@ -362,7 +373,7 @@ def distance_matrix(sdf: PartSDF, samples: PairSamples, frames: int) -> Tensor:
     """Paper 2's M_dist ``(F, S, S)``: the smallest signed distance of segment i's vertices to segment j
     (m, unweighted, bind pose not subtracted), capped at the grid margin (also where nothing was sampled)."""
     s_n = sdf.parts.num_parts
-    key = (samples.frame * s_n + sdf.parts.vertex_part[samples.vertex]) * s_n + samples.part
+    key = (samples.frame * s_n + sdf.parts.vertex_part.index_select(0, samples.vertex)) * s_n + samples.part
     out = samples.distance.new_full((frames * s_n * s_n,), sdf.margin)
     out = out.scatter_reduce(0, key, samples.distance.clamp_max(sdf.margin), "amin", include_self=True)
     return out.view(frames, s_n, s_n)

@@ -42,7 +42,11 @@ def vertex_contact_energy(posed: Tensor, constraints: ContactConstraints, height
     if constraints.count == 0:
         return out
     s = REFERENCE_HEIGHT_M / height
-    d2 = ((posed[constraints.frame, constraints.i] - posed[constraints.frame, constraints.j]) * s).pow(2).sum(-1)
+    flat = posed.reshape(-1, 3)
+    v_n = posed.shape[1]
+    xi = flat.index_select(0, constraints.frame * v_n + constraints.i)
+    xj = flat.index_select(0, constraints.frame * v_n + constraints.j)
+    d2 = ((xi - xj) * s).pow(2).sum(-1)
     total = out.index_add(0, constraints.frame, d2)
     count = torch.zeros(f_n, dtype=posed.dtype).index_add(0, constraints.frame, torch.ones_like(d2))
     return total / count.clamp_min(1.0)
@@ -53,7 +57,7 @@ def interpenetration_energy(sdf: PartSDF, posed: Tensor, seg_mats: Tensor) -> Te
     samples = sample_pairs(sdf, posed, seg_mats)
     s = sdf.scale_to_180
     depth = effective_depth(sdf, samples) * s
-    area = sdf.vertex_area.to(posed.dtype)[samples.vertex] * s * s / UNIT_AREA_M2
+    area = sdf.vertex_area.to(posed.dtype).index_select(0, samples.vertex) * s * s / UNIT_AREA_M2
     return posed.new_zeros(posed.shape[0]).index_add(0, samples.frame, area * depth.pow(2))
 
 

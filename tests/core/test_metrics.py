@@ -231,3 +231,15 @@ def test_run_evaluation_writes_the_table(shared_data: Path, tmp_path: Path) -> N
     assert "| copy | skinny |" in (tmp_path / "eval.md").read_text()
     with pytest.raises(ValueError, match="unknown method"):
         run_evaluation([], [], methods=["nope"])
+
+
+def test_torch_threads_is_restored() -> None:
+    from retarget_core.evaluation import torch_threads
+
+    before = torch.get_num_threads()
+    with torch_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), torch_threads(1):
+        raise RuntimeError("boom")
+    assert torch.get_num_threads() == before
