@@ -55,6 +55,7 @@ def main() -> None:
     from retarget_core.copy_retarget import copy_retarget
     from retarget_core.energy.sdf import build_part_sdf, sample_pairs, segment_matrices, vertex_depths
     from retarget_core.energy.terms import interpenetration_energy, vertex_contact_energy
+    from retarget_core.evaluation import SourceContactResult, source_contacts_model
     from retarget_core.loading import load_character, load_motion
     from retarget_core.metrics.compute import measure_clip, summarize
     from retarget_core.metrics.report import build_metrics_report, write_metrics_json
@@ -83,7 +84,11 @@ def main() -> None:
     sdf = timed(t, "part SDF grids (target, once per body)", lambda: build_part_sdf(tgt.character, tparts))
     measures = timed(t, "measure before (pose + SDF queries)", lambda: measure_clip(tgt.character, tgt.mapping, sdf, before, cons))
     metrics = timed(t, "summarise metrics", lambda: summarize(measures, source_feet=feet))
-    report = build_metrics_report(before.name, tgt.character.name, tgt.character.height, metrics)
+    found = SourceContactResult(sc, feet, body.name)
+    report = build_metrics_report(
+        before.name, tgt.character.name, tgt.character.height, metrics, source_contacts=source_contacts_model(found, cons),
+        timings_s={k: v for k, v in t.items() if k in ("hand self-contacts (source)", "measure before (pose + SDF queries)")},
+    )
     timed(t, "write metrics JSON", lambda: write_metrics_json(report, args.output.with_name("metrics_benchmark_report.json")))
 
     # Energies: E_int and E_j2j on every frame, forward and backward through skinning.

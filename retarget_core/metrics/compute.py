@@ -149,6 +149,10 @@ def _mean(x: Tensor) -> float | None:
     return float(x.mean()) if x.numel() else None
 
 
+def _round(x: float | None, digits: int = 4) -> float | None:
+    return None if x is None else round(x, digits)
+
+
 def _scaled(x: float | None, factor: float) -> float | None:
     return None if x is None else x * factor
 
@@ -251,14 +255,14 @@ def summarize(
         penetration_volume=measure(float(m.penetration_volume.mean()) * cm**3 if f_n else None, s**3, "cm^3"),
         penetration_max_depth=measure(float(frame_max.max()) * cm if f_n else None, s, "cm"),
         penetration_mean_depth=measure(float(frame_max.mean()) * cm if f_n else None, s, "cm"),
-        penetrating_vertices_percent=_mean(pen_verts),
-        penetrating_frames_percent=_mean((frame_max > tol).float() * 100.0),
+        penetrating_vertices_percent=_round(_mean(pen_verts)),
+        penetrating_frames_percent=_round(_mean((frame_max > tol).float() * 100.0)),
         contact_pairs=int(m.contact_distance.numel()),
         contact_frames=int((c_count > 0).sum()),
         contact_distance_mean=measure(c_mean * cm if c_mean is not None else None, s, "cm"),
         contact_mse=measure(c_mse * cm**2 if c_mse is not None else None, s**2, "cm^2"),
-        contact_satisfied_percent=c_ok,
-        foot_contact_accuracy=accuracy,
+        contact_satisfied_percent=_round(c_ok),
+        foot_contact_accuracy=_round(accuracy),
         foot_skate=measure(float(skate.mean()) * cm if skate.numel() else None, s, "cm/frame"),
         foot_contact_frames=int(planted.any(-1).sum()) if planted.numel() else 0,
         ground_penetration_mean=measure(float(ground_pen.mean()) * cm if f_n else None, s, "cm"),
