@@ -94,7 +94,7 @@ def _write_outputs(
         write_glb(character, result.before, before, clip_name=result.source.motion.name)
     if metrics is not None:
         report = build_metrics(result)
-        report["stage_seconds"] = seconds
+        report["context"]["stage_seconds"] = seconds
         metrics.write_text(json.dumps(report, indent=1))
 
 
@@ -156,6 +156,37 @@ def bodies() -> None:
 
     for name, params in PRESETS.items():
         print(f"builtin:{name}\t{params.model_dump_json()}")
+
+
+@app.command(name="eval")
+def evaluate(
+    motions: Annotated[list[Path], typer.Argument(help="Motion files or folders of them (BVH/GLB/FBX)")],
+    body: Annotated[
+        list[str], typer.Option("--body", "-b", help="Target body file or builtin:<preset>; repeat for several")
+    ],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
+    method: Annotated[list[str] | None, typer.Option(help="Methods to compare (default: copy)")] = None,
+    max_frames: Annotated[int | None, typer.Option(help="First frames of each clip (after resampling)")] = 300,
+    fps: Annotated[float, typer.Option(help="Resample every clip to this rate first")] = 30.0,
+) -> None:
+    """Run methods over motions x bodies; print and write the table split skinny/bulky and contact/no-contact."""
+    from retarget_core.evaluation import run_evaluation
+
+    files: list[Path] = []
+    for m in motions:
+        files += (
+            sorted(p for p in m.rglob("*") if p.suffix.lower() in (".bvh", ".glb", ".gltf", ".fbx"))
+            if m.is_dir()
+            else [m]
+        )
+    if not files:
+        _fail("no motion files given")
+    try:
+        table = run_evaluation(files, list(body), method or None, out, max_frames, fps=fps, log=console.print)
+    except RetargetError as exc:
+        _fail(str(exc))
+    print(table.to_markdown())
+    console.print(f"wrote {out / 'eval.json'} and {out / 'eval.md'}")
 
 
 def _progress() -> Progress:

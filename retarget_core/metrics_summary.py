@@ -1,4 +1,5 @@
-"""The metrics JSON of a job: what was read, what ran, and the quality numbers of before and after."""
+"""The metrics JSON of a job: the quality numbers of before and after (``retarget_core.metrics``, schema in
+docs/metrics.md) with what was read and what ran in ``context``."""
 
 from __future__ import annotations
 
@@ -7,15 +8,12 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from retarget_core.pipeline import Retargeted
 
-SCHEMA_VERSION = "0.1"
 
-
-def build_metrics(result: Retargeted) -> dict[str, Any]:
-    """A JSON-ready dict describing a retarget job (see docs/metrics.md)."""
-    src, tgt = result.source, result.target
+def job_context(result: Retargeted) -> dict[str, Any]:
+    """What the pipeline read and did: inputs, joint mappings, normalisation, stages, warnings."""
+    src, tgt, body = result.source, result.target, result.source_body
     motion = src.motion
     return {
-        "schema_version": SCHEMA_VERSION,
         "source": {
             "name": motion.name,
             "format": src.format,
@@ -25,11 +23,13 @@ def build_metrics(result: Retargeted) -> dict[str, Any]:
             "joints": motion.skeleton.num_joints,
             "mapping": src.mapping.report(motion.skeleton.names),
             "normalization": src.normalization.as_dict(),
+            "body": body.character.name,
+            "body_height_m": round(body.character.height, 4),
         },
         "target": {
             "name": tgt.character.name,
             "format": tgt.format,
-            "height_m": tgt.character.height,
+            "height_m": round(tgt.character.height, 4),
             "vertices": tgt.character.num_vertices,
             "joints": tgt.character.skeleton.num_joints,
             "mapping": tgt.mapping.report(tgt.character.skeleton.names),
@@ -38,5 +38,27 @@ def build_metrics(result: Retargeted) -> dict[str, Any]:
         "stages_run": result.stages_run,
         "stages_skipped": result.stages_skipped,
         "warnings": result.warnings,
-        "summary": {},
+    }
+
+
+def build_metrics(result: Retargeted, include_series: bool = True) -> dict[str, Any]:
+    """The job's metrics JSON as a dict: contacts detected on the source, carried to the target, and the metrics
+    of "before" (copy baseline) and "after" (the result) on the target."""
+    from retarget_core.evaluation import measure_job
+
+    measured = measure_job(
+        result.source_body.character, result.source_body.mapping, result.source_view,
+        result.target.character, result.target.mapping, result.before, result.after,
+        context=job_context(result), notes=list(result.warnings), include_series=include_series,
+    )  # fmt: skip
+    report: dict[str, Any] = measured.report.model_dump(mode="json")
+    return report
+
+
+def headline(report: dict[str, Any]) -> dict[str, Any]:
+    """The few numbers a job listing shows: before/after summaries and the improvement."""
+    return {
+        "before": (report.get("before") or {}).get("summary"),
+        "after": (report.get("after") or {}).get("summary"),
+        "improvement": report.get("improvement"),
     }

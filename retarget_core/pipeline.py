@@ -23,7 +23,9 @@ from retarget_core.resample import resample, select_frames
 
 # Share of the job's time each stage takes, for the progress fraction.
 STAGE_WEIGHTS: dict[str, float] = {"read": 0.25, "copy": 0.15, "metrics": 0.35, "write": 0.25}
-REFINEMENT_STAGES = ("contacts", "recurrent", "eso", "collisions", "foot_lock")
+# Stages that would refine "before" into "after"; none is in this version. (Contacts are detected and measured
+# in the metrics stage, not yet enforced.)
+REFINEMENT_STAGES = ("recurrent", "eso", "collisions", "foot_lock")
 
 
 @dataclass
@@ -135,7 +137,7 @@ def run_job(
 
     Files are written under temporary names and renamed at the end, so a failed or canceled job never leaves
     a half-written result that looks complete."""
-    from retarget_core.metrics_summary import build_metrics
+    from retarget_core.metrics_summary import build_metrics, headline
 
     clock = StageClock(progress, should_cancel)
     result = retarget(inputs, clock)
@@ -153,13 +155,13 @@ def run_job(
             out_dir / "source.glb.part",
             clip_name=result.source.motion.name,
         )
-        metrics["stage_seconds"] = dict(clock.seconds)
+        metrics["context"]["stage_seconds"] = dict(clock.seconds)
         (out_dir / "metrics.json.part").write_text(json.dumps(metrics, indent=1))
     for name, path in paths.items():
         (out_dir / f"{name}.part").replace(path)
     if progress is not None:
         progress("done", 1.0)
     return JobOutputs(
-        paths["result.glb"], paths["before.glb"], paths["metrics.json"], metrics.get("summary", {}),
+        paths["result.glb"], paths["before.glb"], paths["metrics.json"], headline(metrics),
         dict(clock.seconds), result.warnings, paths["source.glb"],
     )  # fmt: skip

@@ -40,9 +40,12 @@ def test_run_job_writes_all_outputs(samples: Path, tmp_path: Path) -> None:
     for glb in (out.result_glb, out.before_glb, out.source_glb):
         assert_valid_glb(glb)
     metrics = json.loads(out.metrics_json.read_text())
-    assert metrics["source"]["frames"] == 31  # 60 frames at 60 fps -> 1 s -> 31 frames at 30 fps
-    assert metrics["source"]["fps"] == 30
-    assert metrics["schema_version"]
+    assert metrics["frames"] == 31  # 60 frames at 60 fps -> 1 s -> 31 frames at 30 fps
+    assert metrics["fps"] == 30 and metrics["context"]["source"]["fps"] == 30
+    assert metrics["schema_version"] == "1.0"
+    assert len(metrics["before"]["series"]["foot_skate"]["values"]) == 31
+    assert metrics["context"]["source"]["mapping"]["joints"]["LeftHand"]["joint"] == "CC_Base_L_Hand"
+    assert out.summary["before"]["penetration_volume"]["unit"] == "cm^3"
     fractions = [f for _, f in stages]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
@@ -111,3 +114,13 @@ def test_target_without_skin_is_refused(samples: Path) -> None:
 
     with pytest.raises(RetargetError, match="skinned"):
         load_character(samples / "motions" / "007_03.bvh")
+
+
+def test_cli_eval_writes_the_table(samples: Path, tmp_path: Path) -> None:
+    proc = _cli("eval", str(samples / "motions" / "007_03.bvh"), "-b", str(samples / "characters" / "mh_female_skinny.glb"),
+                "-b", "builtin:male_bulky", "--max-frames", "30", "-o", str(tmp_path))  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    table = json.loads((tmp_path / "eval.json").read_text())
+    assert "| copy |" in proc.stdout and (tmp_path / "eval.md").is_file()
+    per_body = {g["bodies"]: g["values"]["penetration_volume"] for g in table["per_body"]}
+    assert per_body["male_bulky"] > per_body["mh_female_skinny"]
