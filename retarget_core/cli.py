@@ -158,11 +158,20 @@ def bodies() -> None:
         print(f"builtin:{name}\t{params.model_dump_json()}")
 
 
+def _expand(paths: list[Path], suffixes: tuple[str, ...]) -> list[Path]:
+    """Files as given, and the files with one of ``suffixes`` inside the folders given (recursively, sorted)."""
+    out: list[Path] = []
+    for p in paths:
+        out += sorted(f for f in p.rglob("*") if f.suffix.lower() in suffixes) if p.is_dir() else [p]
+    return out
+
+
 @app.command(name="eval")
 def evaluate(
     motions: Annotated[list[Path], typer.Argument(help="Motion files or folders of them (BVH/GLB/FBX)")],
     body: Annotated[
-        list[str], typer.Option("--body", "-b", help="Target body file or builtin:<preset>; repeat for several")
+        list[str],
+        typer.Option("--body", "-b", help="Target body file, folder of them, or builtin:<preset>; repeat for several"),
     ],
     out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
     method: Annotated[list[str] | None, typer.Option(help="Methods to compare (default: copy)")] = None,
@@ -172,17 +181,13 @@ def evaluate(
     """Run methods over motions x bodies; print and write the table split skinny/bulky and contact/no-contact."""
     from retarget_core.evaluation import run_evaluation
 
-    files: list[Path] = []
-    for m in motions:
-        files += (
-            sorted(p for p in m.rglob("*") if p.suffix.lower() in (".bvh", ".glb", ".gltf", ".fbx"))
-            if m.is_dir()
-            else [m]
-        )
-    if not files:
-        _fail("no motion files given")
+    files = _expand(motions, (".bvh", ".glb", ".gltf", ".fbx"))
+    bodies: list[str | Path] = [b for b in body if b.startswith("builtin:")]
+    bodies += _expand([Path(b) for b in body if not b.startswith("builtin:")], (".glb", ".gltf", ".fbx"))
+    if not files or not bodies:
+        _fail("no motion files or no bodies given")
     try:
-        table = run_evaluation(files, list(body), method or None, out, max_frames, fps=fps, log=console.print)
+        table = run_evaluation(files, bodies, method or None, out, max_frames, fps=fps, log=console.print)
     except RetargetError as exc:
         _fail(str(exc))
     print(table.to_markdown())
