@@ -29,21 +29,9 @@ needs_assimp = pytest.mark.skipif(
 FBX_HEADER = b"Kaydara FBX Binary  \x00\x1a\x00"
 
 
-def _shared_data() -> Path | None:
-    env = os.environ.get("RETARGET_SHARED_DATA")
-    here = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-    for candidate in [here] + ([Path(env)] if env else []):  # ../shared/data first, then the variable
-        if (candidate / "characters").is_dir():
-            return candidate
-    return None
-
-
 @pytest.fixture(scope="module")
-def shared() -> Path:
-    path = _shared_data()
-    if path is None:
-        pytest.skip("the shared data set (../shared/data or $RETARGET_SHARED_DATA) is not present")
-    return path
+def shared(shared_data: Path) -> Path:
+    return shared_data
 
 
 def _gltf_reader() -> ModuleType:

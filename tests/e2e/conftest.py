@@ -37,11 +37,10 @@ CHROMIUM_ARGS = [
 sys.path.insert(0, str(REPO / "tests" / "service"))
 from e2e_helpers import LAPTOP  # noqa: E402
 from service_harness import (  # noqa: E402
-    LOCK_KEY,
     REDIS_HOST,
     REDIS_PORT,
     Service,
-    claim_redis_db,
+    claim_clean_redis_db,
     free_port,
 )
 
@@ -85,14 +84,8 @@ def e2e_service(tmp_path_factory: pytest.TempPathFactory, frontend_dist: Path) -
     from api.db import dispose_all
     from api.migrate import upgrade
 
-    try:
-        redis.Redis(REDIS_HOST, REDIS_PORT, socket_timeout=2).ping()
-    except Exception as exc:
-        pytest.skip(f"Redis is not answering at {REDIS_HOST}:{REDIS_PORT}: {exc}")
-    db, token = claim_redis_db()
+    db, _ = claim_clean_redis_db()
     r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
-    r.flushdb()
-    r.set(LOCK_KEY, token, ex=3600)
     root = tmp_path_factory.mktemp("e2e-service")
     data_dir, log_dir = root / "data", root / "logs"
     log_dir.mkdir()

@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from service_harness import LOCK_KEY, REDIS_HOST, REDIS_PORT, REPO, Service, claim_redis_db, free_port
+from service_harness import REDIS_HOST, REDIS_PORT, REPO, Service, claim_clean_redis_db, free_port
 
 from api.db import dispose_all
 from api.migrate import upgrade
@@ -47,14 +47,8 @@ def choose_database(root: Path) -> tuple[str, Callable[[], None] | None]:
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     import redis
 
-    try:
-        redis.Redis(REDIS_HOST, REDIS_PORT, socket_timeout=2).ping()
-    except Exception as exc:
-        pytest.skip(f"Redis is not answering at {REDIS_HOST}:{REDIS_PORT}: {exc}")
-    db, token = claim_redis_db()
+    db, _ = claim_clean_redis_db()
     r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
-    r.flushdb()
-    r.set(LOCK_KEY, token, ex=3600)
     root = tmp_path_factory.mktemp("service")
     data_dir, log_dir = root / "data", root / "logs"
     log_dir.mkdir()

@@ -36,6 +36,22 @@ def claim_redis_db() -> tuple[int, str]:
     raise RuntimeError("no empty Redis database (1-15) to run the service tests in")
 
 
+def claim_clean_redis_db() -> tuple[int, str]:
+    """Skip when Redis does not answer; otherwise a claimed, flushed database number and its lock token."""
+    import pytest
+    import redis
+
+    try:
+        redis.Redis(REDIS_HOST, REDIS_PORT, socket_timeout=2).ping()
+    except Exception as exc:
+        pytest.skip(f"Redis is not answering at {REDIS_HOST}:{REDIS_PORT}: {exc}")
+    db, token = claim_redis_db()
+    r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
+    r.flushdb()
+    r.set(LOCK_KEY, token, ex=3600)
+    return db, token
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
