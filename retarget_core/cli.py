@@ -95,7 +95,7 @@ def _write_outputs(
     if metrics is not None:
         report = build_metrics(result)
         report["context"]["stage_seconds"] = seconds
-        metrics.write_text(json.dumps(report, indent=1))
+        metrics.write_text(json.dumps(report, separators=(",", ":")))
 
 
 @app.command()

@@ -40,7 +40,13 @@ from retarget_core.contacts.self_contact import SelfContacts, detect_self_contac
 from retarget_core.energy.sdf import PartSDF, build_part_sdf
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.metrics.compute import ClipMeasures, compute_metrics
-from retarget_core.metrics.report import MetricsReport, SelfContactEntry, SourceContacts, build_metrics_report
+from retarget_core.metrics.report import (
+    ContactVertexPairs,
+    MetricsReport,
+    SelfContactEntry,
+    SourceContacts,
+    build_metrics_report,
+)
 from retarget_core.motion import Motion
 
 Method = Callable[[LoadedMotion, LoadedCharacter], Motion]
@@ -135,6 +141,11 @@ def detect_source_contacts(body: Character, mapping: JointMapping, motion: Motio
 def source_contacts_model(found: SourceContactResult, constraints: ContactConstraints) -> SourceContacts:
     """The ``source_contacts`` section of the report."""
     sc = found.self_contacts
+    frame, si, sj = sc.vertex_pairs()
+    pairs = ContactVertexPairs(
+        frame=frame.tolist(), source_i=si.tolist(), source_j=sj.tolist(),
+        target_i=constraints.i.tolist(), target_j=constraints.j.tolist(),
+    )  # fmt: skip
     return SourceContacts(
         self_contacts=sc.count,
         self_contact_frames=int(sc.frames_with_contact().sum()),
@@ -142,6 +153,7 @@ def source_contacts_model(found: SourceContactResult, constraints: ContactConstr
         pairs=[SelfContactEntry.model_validate(e) for e in sc.summary()],
         foot_contact_frames=int(found.feet.labels.any(-1).sum()),
         source_body=found.body_name,
+        vertex_pairs=pairs if constraints.count == len(pairs.frame) else None,
     )
 
 
@@ -306,7 +318,11 @@ class EvalTable(BaseModel):
         sep = "|" + "---|" * (4 + len(cols))
 
         def line(g: EvalGroup) -> str:
-            return f"| {g.method} | {g.bodies} | {g.clips} | {g.jobs} | " + " | ".join(_fmt(g.values.get(c)) for c in cols) + " |"
+            return (
+                f"| {g.method} | {g.bodies} | {g.clips} | {g.jobs} | "
+                + " | ".join(_fmt(g.values.get(c)) for c in cols)
+                + " |"
+            )
 
         out = ["## By body group and clip group (values at 1.80 m)", "", head, sep]
         out += [line(g) for g in self.groups]
@@ -314,7 +330,13 @@ class EvalTable(BaseModel):
         out += [line(g) for g in self.per_body]
         out += ["", "## Bodies", "", "| body | height m | bulk index | group |", "|---|---|---|---|"]
         out += [f"| {b.name} | {b.height_m:.3f} | {b.bulk_index:.4f} | {b.group} |" for b in self.bodies]
-        out += ["", "## Clips", "", "| clip | frames | fps | contact frames | group | main contacts (frames) |", "|---|---|---|---|---|---|"]
+        out += [
+            "",
+            "## Clips",
+            "",
+            "| clip | frames | fps | contact frames | group | main contacts (frames) |",
+            "|---|---|---|---|---|---|",
+        ]
         out += [
             f"| {c.name} | {c.frames} | {c.fps:g} | {c.contact_frames} | {c.group} | "
             + ", ".join(f"{e['hand']}-{e['other']} ({e['frames']})" for e in c.contacts[:3])
@@ -422,7 +444,14 @@ def _run_evaluation(
     for b in bodies:
         loaded = load_character(b)
         targets.append(loaded)
-        infos.append(BodyInfo(name=loaded.character.name, height_m=round(loaded.character.height, 4), bulk_index=round(bulk_index(loaded.character), 5), group=""))
+        infos.append(
+            BodyInfo(
+                name=loaded.character.name,
+                height_m=round(loaded.character.height, 4),
+                bulk_index=round(bulk_index(loaded.character), 5),
+                group="",
+            )
+        )
     for info, group in zip(infos, bulk_groups([i.bulk_index for i in infos]), strict=True):
         info.group = (body_groups or {}).get(info.name) or group
 
@@ -448,21 +477,52 @@ def _run_evaluation(
         t = time.perf_counter()
         found = detect_source_contacts(body, body_map, view)
         contact_frames = int(found.self_contacts.frames_with_contact().sum())
-        group = "contact" if contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0 else "no-contact"
+        group = (
+            "contact" if contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0 else "no-contact"
+        )
         pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in found.self_contacts.summary()[:6]]
-        clips.append(ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps, contact_frames=contact_frames, group=group, contacts=pairs))
-        say(f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({group}), contacts {time.perf_counter() - t:.1f}s")
+        clips.append(
+            ClipInfo(
+                name=motion.name,
+                frames=motion.num_frames,
+                fps=motion.fps,
+                contact_frames=contact_frames,
+                group=group,
+                contacts=pairs,
+            )
+        )
+        say(
+            f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({group}), contacts {time.perf_counter() - t:.1f}s"
+        )
         for target, info in zip(targets, infos, strict=True):
             tc = target.character
             results = {m: METHODS[m](source, target) for m in order}
             t = time.perf_counter()
-            copy_measure = measure_job(body, body_map, view, tc, target.mapping, results["copy"], source_contacts=found, include_series=False)
-            rows.append(EvalRow(method="copy", body=info.name, clip=motion.name, values=_summary_values(copy_measure.report, "copy")))
+            copy_measure = measure_job(
+                body, body_map, view, tc, target.mapping, results["copy"], source_contacts=found, include_series=False
+            )
+            rows.append(
+                EvalRow(
+                    method="copy", body=info.name, clip=motion.name, values=_summary_values(copy_measure.report, "copy")
+                )
+            )
             for m in order[1:]:
-                job = measure_job(body, body_map, view, tc, target.mapping, results["copy"], results[m], source_contacts=found, include_series=False)
+                job = measure_job(
+                    body,
+                    body_map,
+                    view,
+                    tc,
+                    target.mapping,
+                    results["copy"],
+                    results[m],
+                    source_contacts=found,
+                    include_series=False,
+                )
                 rows.append(EvalRow(method=m, body=info.name, clip=motion.name, values=_summary_values(job.report, m)))
             v = rows[-len(order)].values
-            say(f"  {info.name:>20}: pen. vol. {_fmt(v['penetration_volume'])} cm^3, max {_fmt(v['penetration_max_depth'])} cm ({time.perf_counter() - t:.1f}s)")
+            say(
+                f"  {info.name:>20}: pen. vol. {_fmt(v['penetration_volume'])} cm^3, max {_fmt(v['penetration_max_depth'])} cm ({time.perf_counter() - t:.1f}s)"
+            )
 
     body_group = {i.name: i.group for i in infos}
     clip_group = {c.name: c.group for c in clips}
@@ -470,7 +530,11 @@ def _run_evaluation(
     for m in order:
         for bg in ("skinny", "medium", "bulky", "all"):
             for cg in ("contact", "no-contact", "all"):
-                sel = [r for r in rows if r.method == m and bg in ("all", body_group[r.body]) and cg in ("all", clip_group[r.clip])]
+                sel = [
+                    r
+                    for r in rows
+                    if r.method == m and bg in ("all", body_group[r.body]) and cg in ("all", clip_group[r.clip])
+                ]
                 if sel:
                     groups.append(EvalGroup(method=m, bodies=bg, clips=cg, jobs=len(sel), values=_mean_values(sel)))
     per_body = [

@@ -156,7 +156,7 @@ def run_job(
             clip_name=result.source.motion.name,
         )
         metrics["context"]["stage_seconds"] = dict(clock.seconds)
-        (out_dir / "metrics.json.part").write_text(json.dumps(metrics, indent=1))
+        (out_dir / "metrics.json.part").write_text(json.dumps(metrics, separators=(",", ":")))
     for name, path in paths.items():
         (out_dir / f"{name}.part").replace(path)
     if progress is not None:

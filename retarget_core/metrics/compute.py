@@ -27,7 +27,7 @@ from retarget_core.energy.sdf import (
     segment_matrices,
     vertex_depths,
 )
-from retarget_core.metrics.report import MethodMetrics, MetricSummary, Series, measure
+from retarget_core.metrics.report import MethodMetrics, MetricSummary, PenetratingVertices, Series, measure
 from retarget_core.motion import Motion
 
 LIMBS: tuple[str, ...] = tuple(END_EFFECTOR_SEGMENTS)
@@ -222,7 +222,7 @@ def summarize(
     if source_feet is not None and avail.any():
         src = source_feet.labels[:f_n][:, avail]
         accuracy = float((labels[: src.shape[0]] == src).float().mean())
-    planted = (source_feet.labels[:f_n][:, avail] if source_feet is not None else labels)
+    planted = source_feet.labels[:f_n][:, avail] if source_feet is not None else labels
     joints_feet = torch.tensor([j for j in m.feet.joints if j >= 0])
     skate_frame = torch.zeros(f_n)
     skate_valid = torch.zeros(f_n, dtype=torch.bool)
@@ -293,7 +293,27 @@ def summarize(
         series["mpjpe"] = _series(mpjpe * k, "cm at 1.80 m")
     if gpe is not None:
         series["global_position_error"] = _series(gpe * k, "cm at 1.80 m")
-    return MethodMetrics(summary=summary, series=series)
+    return MethodMetrics(summary=summary, series=series, penetration_vertices=penetrating_vertices(m, tol, k / cm))
+
+
+def penetrating_vertices(
+    m: ClipMeasures, tolerance_m: float, to_180: float, per_frame: int = 400
+) -> PenetratingVertices:
+    """Per frame, the (at most ``per_frame``) deepest vertices deeper than ``tolerance_m``; depth in cm at 1.80 m
+    (``to_180``: the factor from the body's metres to metres at 1.80 m)."""
+    depth = m.vertex_depth
+    count = (depth > tolerance_m).sum(-1)
+    k = min(per_frame, depth.shape[1])
+    top, idx = depth.topk(k, dim=-1)
+    keep = top > tolerance_m
+    frames = torch.arange(depth.shape[0]).unsqueeze(-1).expand_as(idx)[keep]
+    return PenetratingVertices(
+        frame=frames.tolist(),
+        vertex=idx[keep].tolist(),
+        depth=[round(v, 2) for v in (top[keep] * to_180 * 100.0).tolist()],
+        per_frame_limit=per_frame,
+        truncated=bool((count > per_frame).any()),
+    )
 
 
 def _foot_names(feet: FootContacts) -> list[str]:

@@ -65,11 +65,23 @@ class Series(BaseModel):
     values: list[float | None]
 
 
+class PenetratingVertices(BaseModel):
+    """Vertices deeper than the penetration tolerance, as parallel arrays ``(K,)``: frame, vertex index (into the
+    target mesh as written to the GLBs) and depth (cm at 1.80 m); at most ``per_frame_limit`` deepest per frame."""
+
+    frame: list[int]
+    vertex: list[int]
+    depth: list[float]
+    per_frame_limit: int
+    truncated: bool = Field(description="some frames had more penetrating vertices than the limit")
+
+
 class MethodMetrics(BaseModel):
     """Summary and per-frame series of one motion (``before``: the copy baseline; ``after``: the result)."""
 
     summary: MetricSummary
     series: dict[str, Series] = Field(default_factory=dict)
+    penetration_vertices: PenetratingVertices | None = None
 
 
 class SelfContactEntry(BaseModel):
@@ -82,6 +94,17 @@ class SelfContactEntry(BaseModel):
     last: int
 
 
+class ContactVertexPairs(BaseModel):
+    """Every vertex pair constrained to touch, as parallel arrays ``(M,)``: frame, the pair on the source body
+    (``source_i``, ``source_j``) and its correspondence on the target (``target_i``, ``target_j``)."""
+
+    frame: list[int]
+    source_i: list[int]
+    source_j: list[int]
+    target_i: list[int]
+    target_j: list[int]
+
+
 class SourceContacts(BaseModel):
     """What contact detection found on the source motion."""
 
@@ -91,6 +114,7 @@ class SourceContacts(BaseModel):
     pairs: list[SelfContactEntry] = Field(default_factory=list)
     foot_contact_frames: int = Field(0, description="frames where at least one foot joint is planted")
     source_body: str | None = Field(None, description="the body the source was measured on")
+    vertex_pairs: ContactVertexPairs | None = None
 
 
 class MetricsReport(BaseModel):

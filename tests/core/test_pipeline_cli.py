@@ -46,8 +46,28 @@ def test_run_job_writes_all_outputs(samples: Path, tmp_path: Path) -> None:
     assert len(metrics["before"]["series"]["foot_skate"]["values"]) == 31
     assert metrics["context"]["source"]["mapping"]["joints"]["LeftHand"]["joint"] == "CC_Base_L_Hand"
     assert out.summary["before"]["penetration_volume"]["unit"] == "cm^3"
+    # Penetrating vertices for the viewer: in range, deeper than the tolerance, listed deepest first per frame.
+    pv = metrics["after"]["penetration_vertices"]
+    assert len(pv["frame"]) == len(pv["vertex"]) == len(pv["depth"]) > 0
+    assert max(pv["frame"]) < 31 and max(pv["vertex"]) < metrics["context"]["target"]["vertices"]
+    assert min(pv["depth"]) > 0.2
+    first = [d for f, d in zip(pv["frame"], pv["depth"], strict=True) if f == pv["frame"][0]]
+    assert first == sorted(first, reverse=True)
     fractions = [f for _, f in stages]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_contact_vertex_pairs_in_metrics(shared_data: Path, tmp_path: Path) -> None:
+    """The swordplay two-hand grip: constrained pairs listed on source and target meshes, in range."""
+    inputs = JobInputs(shared_data / "motions" / "cmu" / "002_08.bvh", "builtin:male_skinny",
+                       options=RetargetOptions(frame_end=150))  # fmt: skip
+    out = run_job(inputs, tmp_path / "job")
+    metrics = json.loads(out.metrics_json.read_text())
+    pairs = metrics["source_contacts"]["vertex_pairs"]
+    assert pairs is not None and len(pairs["frame"]) == metrics["source_contacts"]["constraints"] > 0
+    assert len({len(v) for v in pairs.values()}) == 1
+    assert max(pairs["target_i"] + pairs["target_j"]) < metrics["context"]["target"]["vertices"]
+    assert max(pairs["frame"]) < 150
 
 
 def test_cancel_between_stages(samples: Path, tmp_path: Path) -> None:

@@ -239,25 +239,28 @@ def test_keyboard_plays_pauses_and_steps(new_page: Any, form_job: FormJob) -> No
 
 
 def test_charts_show_the_metrics_of_the_job(new_page: Any, form_job: FormJob, artifacts: Path) -> None:
-    """With per-frame series in the job's metrics, every chart has data and a playhead; without (older metrics
-    schema), every chart says so and the page states there is no per-frame data."""
+    """The job's metrics carry per-frame series and penetrating vertices: every chart has data and a playhead,
+    and the penetrating vertices the metrics list for a frame are painted in the after view."""
     metrics = httpx.get(f"{form_job.base_url}{form_job.job['results']['metrics_json']}",
                         headers={"X-API-Key": form_job.key}).json()  # fmt: skip
-    has_series = any(isinstance((metrics.get(m) or {}).get("series"), dict) and metrics[m]["series"]
-                     for m in ("before", "after"))  # fmt: skip
+    assert metrics["before"]["series"] and metrics["after"]["series"]
     page = open_review(new_page, form_job)
     seek(page, 12)
     charts = page.evaluate("window.__viewer.charts()")
     assert [c["id"] for c in charts] == ["penetration", "contact", "skate"]
     page.locator(".charts").screenshot(path=str(artifacts / "05-charts-real-job.png"))
-    if has_series:
-        pen = page.evaluate("window.__viewer.charts()")[0]
-        assert pen["hasData"] and pen["points"] > 0 and pen["playhead"] == 12
-        assert page.locator(".summary-table tbody tr").count() > 0
-    else:
-        assert all(not c["hasData"] for c in charts)
-        assert page.locator('.no-data[data-no-series="true"]').is_visible()
-        assert "No per-frame data for this job" in page.inner_text(".charts")
+    pen = charts[0]
+    assert pen["hasData"] and pen["points"] > 0 and pen["playhead"] == 12
+    assert page.locator(".summary-table tbody tr").count() > 0
+    listed = metrics["after"]["penetration_vertices"]
+    expected = sum(1 for f in listed["frame"] if f == 12)
+    assert expected > 0, "the bulky body should penetrate itself in frame 12 of the walk"
+    assert page.is_enabled('[data-toggle="penetration"]')
+    page.uncheck('[data-toggle="contacts"]')
+    seek(page, 13)
+    seek(page, 12)
+    assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == str(expected)
+    page.screenshot(path=str(artifacts / "05-review-real-penetration.png"))
 
 
 @pytest.mark.parametrize("series", [False, True], ids=["job-metrics", "fixture-series"])
