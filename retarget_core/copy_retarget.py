@@ -19,7 +19,6 @@ from torch import Tensor
 
 from retarget_core import rotations as rot
 from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, JointMapping
-from retarget_core.character import Character
 from retarget_core.kinematics import forward_kinematics
 from retarget_core.motion import Motion
 from retarget_core.normalize import foot_clearance, foot_joint_indices, left_axis, leg_length
@@ -160,10 +159,3 @@ def copy_retarget(
     shift = float(diff.median())
     local_t[:, root, 1] -= shift
     return Motion(target, source.fps, local_r, local_t, source.name)
-
-
-def retarget_to_character(
-    source: Motion, source_map: JointMapping, target: Character, target_map: JointMapping, *, in_place: bool = False
-) -> Motion:
-    """:func:`copy_retarget` onto a character's skeleton."""
-    return copy_retarget(source, source_map, target.skeleton, target_map, in_place=in_place)

@@ -466,9 +466,7 @@ def _run_evaluation(
             motion = motion.slice(0, max_frames)
         source.motion = motion
         if source.source_character is not None:
-            from retarget_core.mapping import map_joints
-
-            body, body_map = source.source_character, map_joints(source.source_character.skeleton)
+            body, body_map = source.source_character.character, source.source_character.mapping
         else:
             body, body_map = source_body_for(motion.skeleton, source.mapping)
         from retarget_core.copy_retarget import copy_retarget

@@ -51,15 +51,6 @@ def global_to_local(
     return rot.normalize(local_r), local_t
 
 
-def rigid_matrices(global_rotations: Tensor, global_positions: Tensor) -> Tensor:
-    """4x4 matrices ``(..., J, 4, 4)`` from world rotations ``(..., J, 4)`` and positions ``(..., J, 3)``."""
-    m = torch.zeros(*global_rotations.shape[:-1], 4, 4, dtype=global_rotations.dtype)
-    m[..., :3, :3] = rot.to_matrix(global_rotations)
-    m[..., :3, 3] = global_positions
-    m[..., 3, 3] = 1.0
-    return m
-
-
 def skinning_matrices(
     rest_rotations: Tensor, rest_positions: Tensor, posed_rotations: Tensor, posed_positions: Tensor
 ) -> Tensor:

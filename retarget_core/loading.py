@@ -18,19 +18,6 @@ BUILTIN_PREFIX = "builtin:"
 
 
 @dataclass
-class LoadedMotion:
-    """A motion ready for retargeting, with what was found on the way."""
-
-    motion: Motion
-    mapping: JointMapping
-    normalization: NormalizationReport
-    format: str
-    source_character: Character | None = None
-    clips: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-
-
-@dataclass
 class LoadedCharacter:
     """A character ready to be a target or a source body."""
 
@@ -38,6 +25,20 @@ class LoadedCharacter:
     mapping: JointMapping
     normalization: NormalizationReport
     format: str
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class LoadedMotion:
+    """A motion ready for retargeting, with what was found on the way."""
+
+    motion: Motion
+    mapping: JointMapping
+    normalization: NormalizationReport
+    format: str
+    source_character: LoadedCharacter | None = None
+    """The motion file's own skinned mesh, mapped and normalised, when it has one."""
+    clips: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
 
@@ -103,7 +104,8 @@ def load_motion(
     if character is not None:
         try:
             char_map = _map(f"character in {path.name}", character.skeleton, joint_map_override)
-            source_character, _ = normalize_character(character, char_map)
+            body, body_report = normalize_character(character, char_map)
+            source_character = LoadedCharacter(body, char_map, body_report, fmt, body_report.notes)
         except RetargetError as exc:
             notes.append(f"the file's mesh cannot serve as the source body: {exc}")
     return LoadedMotion(

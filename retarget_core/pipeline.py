@@ -19,6 +19,7 @@ from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.motion import Motion
+from retarget_core.normalize import NormalizationReport
 from retarget_core.resample import resample, select_frames
 
 # Share of the job's time each stage takes, for the progress fraction.
@@ -73,12 +74,7 @@ def source_body(inputs: JobInputs, source: LoadedMotion) -> LoadedCharacter:
     if inputs.source_character is not None:
         return load_character(inputs.source_character)
     if source.source_character is not None:
-        from retarget_core.mapping import map_joints
-        from retarget_core.normalize import NormalizationReport
-
-        body = source.source_character
-        return LoadedCharacter(body, map_joints(body.skeleton), NormalizationReport(), source.format)
-    from retarget_core.normalize import NormalizationReport
+        return source.source_character
     from retarget_core.source_body import source_body_for
 
     body, mapping = source_body_for(source.motion.skeleton, source.mapping)

@@ -33,7 +33,6 @@ def resample(motion: Motion, fps: float) -> Motion:
     w = t - i0.float()
     q0, q1 = motion.rotations[i0], motion.rotations[i1]
     # Shortest path: flip q1 where it lies in the other hemisphere.
-    q1 = torch.where(((q0 * q1).sum(-1, keepdim=True)) < 0, -q1, q1)
     wq = w[:, None].expand(n_out, q0.shape[1])
     rotations = rot.normalize(rot.slerp(q0, q1, wq))
     wt = w[:, None, None]

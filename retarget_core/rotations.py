@@ -101,15 +101,6 @@ def from_frame(primary: Tensor, secondary: Tensor, primary_axis: int = 1, second
     return from_matrix(m)
 
 
-def yaw(q: Tensor) -> Tensor:
-    """The rotation about +Y ``(..., 4)`` that best matches the heading of ``q``: where it sends +Z."""
-    fwd = apply(q, torch.tensor([0.0, 0.0, 1.0], dtype=q.dtype).expand(q.shape[:-1] + (3,)))
-    angle = torch.atan2(fwd[..., 0], fwd[..., 2])
-    half = angle / 2
-    zero = torch.zeros_like(half)
-    return torch.stack([zero, torch.sin(half), zero, torch.cos(half)], dim=-1)
-
-
 def slerp(a: Tensor, b: Tensor, t: Tensor) -> Tensor:
     """Element-wise spherical interpolation of unit quaternions ``a``, ``b`` ``(..., 4)`` at weights ``t (...)``
     along the shorter arc."""

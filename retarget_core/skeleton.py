@@ -88,27 +88,5 @@ class Skeleton:
             rest_rotations,
         )
 
-    def scaled(self, factor: float) -> Skeleton:
-        """The same skeleton with all offsets multiplied by ``factor``."""
-        return Skeleton(
-            list(self.names), list(self.parents), self.rest_translations * factor, self.rest_rotations.clone()
-        )
 
-
-def stack_names(skeleton: Skeleton) -> str:
-    """A readable tree of the skeleton, one joint per line, indented by depth."""
-    lines = []
-    for j, name in enumerate(skeleton.names):
-        lines.append("  " * len(skeleton.ancestors(j)) + name)
-    return "\n".join(lines)
-
-
-def zeros_like_rest(skeleton: Skeleton, frames: int) -> tuple[Tensor, Tensor]:
-    """Rest rotations and translations broadcast to ``(F, J, 4)`` and ``(F, J, 3)``."""
-    return (
-        skeleton.rest_rotations.unsqueeze(0).repeat(frames, 1, 1),
-        skeleton.rest_translations.unsqueeze(0).repeat(frames, 1, 1),
-    )
-
-
-__all__ = ["Skeleton", "stack_names", "zeros_like_rest"]
+__all__ = ["Skeleton"]
