@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, create_model, model_validator
+
+from retarget_core.stages import STAGES
 
 
-class StageSwitches(BaseModel):
-    """Which pipeline stages run. Stages that do not exist yet in this version are ignored with a note."""
+class _StageSwitchesBase(BaseModel):
+    def enabled(self, name: str) -> bool:
+        """Whether stage ``name`` is switched on."""
+        return bool(getattr(self, name))
 
-    contacts: bool = True
-    recurrent: bool = True
-    eso: bool = True
-    collisions: bool = True
-    foot_lock: bool = True
+
+StageSwitches = create_model(  # one bool per stage of :data:`retarget_core.stages.STAGES`
+    "StageSwitches",
+    __base__=_StageSwitchesBase,
+    __doc__="Which pipeline stages run (stages not available in this version are skipped with a note).",
+    **{s.name: (bool, Field(default=s.default, description=s.description)) for s in STAGES},  # type: ignore[call-overload]
+)
 
 
 class RetargetOptions(BaseModel):
@@ -24,7 +30,8 @@ class RetargetOptions(BaseModel):
     clip: str | None = Field(default=None, description="Animation name or index when the motion file has several")
     in_place: bool = Field(default=False, description="Remove horizontal root motion")
     eso_iterations: int = Field(default=30, ge=0, le=1000, description="Encoder-space optimisation steps per window")
-    stages: StageSwitches = Field(default_factory=StageSwitches)
+    stages: StageSwitches = Field(default_factory=StageSwitches)  # type: ignore[valid-type]
+    device: str = Field(default="cpu", pattern=r"^(cpu|cuda(:\d+)?|auto)$", description="Torch device: cpu, cuda, cuda:N or auto")
     joint_map_override: dict[str, str] | None = Field(
         default=None, description="Canonical joint name -> joint name in the motion's skeleton"
     )
