@@ -233,6 +233,16 @@ class BatchOut(BaseModel):
     links: dict[str, str]
 
 
+class StageOut(BaseModel):
+    """One switchable pipeline stage, in pipeline order (the key of ``options.stages``)."""
+
+    name: str
+    label: str
+    description: str
+    default: bool
+    available: bool = Field(description="implemented in this version; unavailable stages are skipped with a note")
+
+
 class ServiceInfo(BaseModel):
     """Limits and facts a client needs before uploading."""
 
@@ -245,6 +255,7 @@ class ServiceInfo(BaseModel):
     character_formats: list[str]
     motion_formats: list[str]
     result_files: list[str]
+    stages: list[StageOut] = Field(default_factory=list, description="The pipeline's switchable stages, in order")
 
 
 class KeyInfo(BaseModel):

@@ -7,13 +7,12 @@ from collections.abc import Sequence
 
 from api.models import Asset, Batch, Job, WebhookDelivery
 from api.schemas import FINISHED, AssetOut, BatchOut, JobOut, Timings, WebhookState
+from retarget_core.jobs import OUTPUT_FILES
 
+_CONTENT_TYPES = {".glb": "model/gltf-binary", ".json": "application/json"}
 RESULT_FILES: dict[str, tuple[str, str]] = {
-    # file name in the URL -> (key in JobOut.results, content type)
-    "result.glb": ("result_glb", "model/gltf-binary"),
-    "before.glb": ("before_glb", "model/gltf-binary"),
-    "metrics.json": ("metrics_json", "application/json"),
-    "source.glb": ("source_glb", "model/gltf-binary"),
+    # file name in the URL -> (key in JobOut.results, content type); the names come from the library
+    name: (key, _CONTENT_TYPES[name[name.rindex("."):]]) for key, name in OUTPUT_FILES.items()
 }
 
 ASSET_CONTENT_TYPES = {

@@ -13,9 +13,10 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from retarget_core.errors import RetargetError
+from retarget_core.stages import STAGE_NAMES
 
 if TYPE_CHECKING:
-    from retarget_core.pipeline import Retargeted
+    from retarget_core.retargeted import Retargeted
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Put a human motion onto any skinned character.")
 console = Console(stderr=True)
@@ -46,6 +47,10 @@ def run(
     in_place: Annotated[bool, typer.Option(help="Remove horizontal root motion")] = False,
     map_override: Annotated[Path | None, typer.Option(help="JSON {canonical: joint} for the motion's skeleton")] = None,
     target_map_override: Annotated[Path | None, typer.Option(help="JSON {canonical: joint} for the target")] = None,
+    off: Annotated[
+        list[str] | None, typer.Option("--off", help=f"Switch a stage off (repeatable): {', '.join(STAGE_NAMES)}")
+    ] = None,
+    device: Annotated[str, typer.Option(help="Torch device: cpu, cuda, cuda:N or auto")] = "cpu",
 ) -> None:
     """Retarget MOTION onto TARGET and write an animated GLB (or BVH)."""
     from retarget_core.jobs import JobInputs
@@ -54,8 +59,12 @@ def run(
 
     if output.suffix.lower() not in (".glb", ".bvh"):
         _fail(f"output must end in .glb or .bvh, not {output.suffix!r}")
+    unknown = [s for s in off or [] if s not in STAGE_NAMES]
+    if unknown:
+        _fail(f"unknown stage(s) {', '.join(unknown)}; stages: {', '.join(STAGE_NAMES)}")
     options = RetargetOptions(
-        fps=fps, frame_start=start, frame_end=end, clip=clip, in_place=in_place,
+        fps=fps, frame_start=start, frame_end=end, clip=clip, in_place=in_place, device=device,
+        stages={s: s not in (off or []) for s in STAGE_NAMES},
         joint_map_override=_load_override(map_override), target_joint_map_override=_load_override(target_map_override),
     )  # fmt: skip
     inputs = JobInputs(motion, target if target.startswith("builtin:") else Path(target), source_character, options)
@@ -64,8 +73,12 @@ def run(
         clock = StageClock(progress=lambda stage, frac: bar.update(task, completed=frac, description=stage))
         try:
             result = retarget(inputs, clock)
+            report = None
+            if metrics is not None:
+                with clock.stage("metrics"):
+                    report = _metrics_report(result)
             with clock.stage("write"):
-                _write_outputs(result, output, before, metrics, clock.seconds)
+                _write_outputs(result, output, before, metrics, report, clock.seconds)
         except RetargetError as exc:
             bar.stop()
             _fail(str(exc))
@@ -78,12 +91,21 @@ def run(
     )
 
 
+def _metrics_report(result: Retargeted) -> dict[str, Any]:
+    from retarget_core.measure import torch_threads
+    from retarget_core.metrics_summary import build_metrics
+    from retarget_core.pipeline import PIPELINE_THREADS
+
+    with torch_threads(PIPELINE_THREADS):
+        return build_metrics(result)
+
+
 def _write_outputs(
-    result: Retargeted, output: Path, before: Path | None, metrics: Path | None, seconds: dict[str, float]
+    result: Retargeted, output: Path, before: Path | None, metrics: Path | None, report: dict[str, Any] | None,
+    seconds: dict[str, float],
 ) -> None:
     from retarget_core.io.bvh import write_bvh
     from retarget_core.io.gltf_write import write_glb
-    from retarget_core.metrics_summary import build_metrics
 
     character = result.target.character
     if output.suffix.lower() == ".bvh":
@@ -92,8 +114,7 @@ def _write_outputs(
         write_glb(character, result.after, output, clip_name=result.source.motion.name)
     if before is not None:
         write_glb(character, result.before, before, clip_name=result.source.motion.name)
-    if metrics is not None:
-        report = build_metrics(result)
+    if metrics is not None and report is not None:
         report["context"]["stage_seconds"] = seconds
         metrics.write_text(json.dumps(report, separators=(",", ":")))
 
@@ -174,9 +195,15 @@ def evaluate(
         typer.Option("--body", "-b", help="Target body file, folder of them, or builtin:<preset>; repeat for several"),
     ],
     out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
-    method: Annotated[list[str] | None, typer.Option(help="Methods to compare (default: copy)")] = None,
+    method: Annotated[
+        list[str] | None,
+        typer.Option(help="Methods to compare, repeatable: copy, collisions, foot_lock, collisions+foot_lock, full"),
+    ] = None,
     max_frames: Annotated[int | None, typer.Option(help="First frames of each clip (after resampling)")] = 300,
     fps: Annotated[float, typer.Option(help="Resample every clip to this rate first")] = 30.0,
+    source_body: Annotated[
+        str | None, typer.Option(help="Body performing the motions (file or builtin:<preset>); default: their own")
+    ] = None,
 ) -> None:
     """Run methods over motions x bodies; print and write the table split skinny/bulky and contact/no-contact."""
     from retarget_core.evaluation import run_evaluation
@@ -187,7 +214,9 @@ def evaluate(
     if not files or not bodies:
         _fail("no motion files or no bodies given")
     try:
-        table = run_evaluation(files, bodies, method or None, out, max_frames, fps=fps, log=console.print)
+        table = run_evaluation(
+            files, bodies, method or None, out, max_frames, fps=fps, log=console.print, source_character=source_body
+        )
     except RetargetError as exc:
         _fail(str(exc))
     print(table.to_markdown())

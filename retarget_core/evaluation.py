@@ -1,254 +1,45 @@
-"""Measuring jobs and the evaluation table (``retarget eval``).
+"""The evaluation table (``retarget eval``): methods x motions x bodies, split into skinny / medium / bulky
+bodies and contact / no-contact clips like paper 1's appendix D, printed and written as JSON and Markdown.
 
-- :func:`detect_source_contacts`: hand self-contacts and foot contacts of the source motion on its body.
-- :func:`measure_job`: the metrics report of one motion x target from the motions the pipeline made (the
-  source on its body, "before" and optionally "after" on the target).
-- :func:`run_evaluation`: methods x motions x bodies, a table split into skinny / medium / bulky bodies and
-  contact / no-contact clips like paper 1's appendix D, printed and written as JSON and Markdown.
-
-Methods are functions ``(source: LoadedMotion, target: LoadedCharacter) -> Motion`` registered in
-:data:`METHODS` by name; ``copy`` (the baseline) is built in and is always measured first, because every other
-method's MPJPE and M_i / M_o are measured against it.
+A method is a set of refinement stages (:data:`METHODS`): ``copy`` runs none (the baseline, always measured
+first: every other method's MPJPE and M_i / M_o are measured against it). Every job runs through
+:func:`retarget_core.pipeline.prepare` and :func:`retarget_core.pipeline.refine`, exactly as a job of the
+service or the CLI does.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
-from collections import OrderedDict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 from pydantic import BaseModel, Field
 
-from retarget_core.body_parts import BodyParts, body_parts
-from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
-from retarget_core.contacts.correspondence import (
-    ContactConstraints,
-    build_correspondence,
-    no_contacts,
-    transfer_contacts,
-)
-from retarget_core.contacts.foot_contact import FootContacts, detect_foot_contacts
-from retarget_core.contacts.self_contact import SelfContacts, detect_self_contacts
-from retarget_core.energy.sdf import PartSDF, build_part_sdf
-from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
-from retarget_core.metrics.compute import ClipMeasures, compute_metrics
-from retarget_core.metrics.report import (
-    ContactVertexPairs,
-    MetricsReport,
-    SelfContactEntry,
-    SourceContacts,
-    build_metrics_report,
-)
-from retarget_core.motion import Motion
+from retarget_core.jobs import JobInputs
+from retarget_core.loading import load_character
+from retarget_core.measure import MEASURE_THREADS, measure_job, torch_threads
+from retarget_core.metrics.report import MetricsReport
+from retarget_core.options import RetargetOptions
+from retarget_core.stages import REFINEMENT_STAGE_NAMES, stage_info
 
-Method = Callable[[LoadedMotion, LoadedCharacter], Motion]
+METHODS: dict[str, tuple[str, ...]] = {
+    "copy": (),
+    "collisions": ("collisions",),
+    "foot_lock": ("foot_lock",),
+    "collisions+foot_lock": ("collisions", "foot_lock"),
+    "full": tuple(n for n in REFINEMENT_STAGE_NAMES if stage_info(n).available),
+}
+"""Method name -> the refinement stages it runs (``full``: every stage available in this version)."""
 
 
-def _copy_method(source: LoadedMotion, target: LoadedCharacter) -> Motion:
-    from retarget_core.copy_retarget import copy_retarget
-
-    return copy_retarget(source.motion, source.mapping, target.character.skeleton, target.mapping)
-
-
-METHODS: dict[str, Method] = {"copy": _copy_method}
-
-
-def register_method(name: str, method: Method) -> None:
-    """Make ``method`` available to :func:`run_evaluation` under ``name``."""
-    METHODS[name] = method
-
-
-# --- per-character precomputation, cached -------------------------------------------------------------------
-
-_SDF_CACHE: OrderedDict[str, tuple[BodyParts, PartSDF]] = OrderedDict()
-SDF_CACHE_SIZE = 16
-
-
-def character_key(character: Character, mapping: JointMapping) -> str:
-    """A content hash of the mesh, skin and mapping (the same body read twice has the same key)."""
-    h = hashlib.sha1()
-    for t in (character.vertices, character.faces, character.skin_joints, character.skin_weights):
-        h.update(t.detach().contiguous().numpy().tobytes())
-    h.update(json.dumps(sorted(mapping.joints.items())).encode())
-    return h.hexdigest()
-
-
-def part_sdf_for(character: Character, mapping: JointMapping) -> tuple[BodyParts, PartSDF]:
-    """The body parts and signed-distance grids of ``character`` (built once per body and process)."""
-    key = character_key(character, mapping)
-    if key in _SDF_CACHE:
-        _SDF_CACHE.move_to_end(key)
-        return _SDF_CACHE[key]
-    parts = body_parts(character, mapping)
-    value = (parts, build_part_sdf(character, parts))
-    _SDF_CACHE[key] = value
-    while len(_SDF_CACHE) > SDF_CACHE_SIZE:
-        _SDF_CACHE.popitem(last=False)
-    return value
-
-
-# --- one job ------------------------------------------------------------------------------------------------
-
-MEASURE_THREADS = 1
-"""Torch intra-op threads while measuring. The queries are many small tensor operations; on a small, shared
-CPU (2 cores, other processes running) OpenMP's parallel regions cost more than they save: a 300-frame job
-took 22 s with torch's default 2 threads and 5 s with 1 (benchmarks/results/metrics_benchmark*.json)."""
-
-
-@contextmanager
-def torch_threads(n: int | None) -> Iterator[None]:
-    """Run the block with ``n`` torch intra-op threads (None: leave as is), restoring the setting after."""
-    if n is None or n == torch.get_num_threads():
-        yield
-        return
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-@dataclass
-class SourceContactResult:
-    """Contacts found on the source: hand self-contacts (on the source body's vertices) and foot contacts."""
-
-    self_contacts: SelfContacts
-    feet: FootContacts
-    body_name: str
-
-
-def detect_source_contacts(body: Character, mapping: JointMapping, motion: Motion) -> SourceContactResult:
-    """Contacts of ``motion`` (on ``body``'s skeleton, e.g. the copy of the source onto its body)."""
-    parts = body_parts(body, mapping)
-    grot, gpos = motion.global_transforms()
-    with torch.no_grad():
-        posed = body.pose_vertices(grot, gpos)
-    self_contacts = detect_self_contacts(parts, posed, body.height, motion.fps)
-    _, rest = body.skeleton.rest_global()
-    feet = detect_foot_contacts(gpos, rest, mapping, body.height, motion.fps)
-    return SourceContactResult(self_contacts, feet, body.name)
-
-
-def source_contacts_model(found: SourceContactResult, constraints: ContactConstraints) -> SourceContacts:
-    """The ``source_contacts`` section of the report."""
-    sc = found.self_contacts
-    frame, si, sj = sc.vertex_pairs()
-    pairs = ContactVertexPairs(
-        frame=frame.tolist(), source_i=si.tolist(), source_j=sj.tolist(),
-        target_i=constraints.i.tolist(), target_j=constraints.j.tolist(),
-    )  # fmt: skip
-    return SourceContacts(
-        self_contacts=sc.count,
-        self_contact_frames=int(sc.frames_with_contact().sum()),
-        constraints=constraints.count,
-        pairs=[SelfContactEntry.model_validate(e) for e in sc.summary()],
-        foot_contact_frames=int(found.feet.labels.any(-1).sum()),
-        source_body=found.body_name,
-        vertex_pairs=pairs if constraints.count == len(pairs.frame) else None,
-    )
-
-
-@dataclass
-class JobMeasurement:
-    """Everything measured for one motion x target."""
-
-    report: MetricsReport
-    source: SourceContactResult
-    constraints: ContactConstraints
-    before: ClipMeasures
-    after: ClipMeasures | None
-
-
-def measure_job(
-    source_body: Character,
-    source_mapping: JointMapping,
-    source_view: Motion,
-    target: Character,
-    target_mapping: JointMapping,
-    before: Motion,
-    after: Motion | None = None,
-    *,
-    reference: Motion | None = None,
-    source_contacts: SourceContactResult | None = None,
-    include_series: bool = True,
-    context: dict[str, Any] | None = None,
-    notes: list[str] | None = None,
-    threads: int | None = MEASURE_THREADS,
-) -> JobMeasurement:
-    """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
-    "after", against "before") on the target; ``reference`` is a ground-truth motion on the target if any.
-    All motions must have the same frame count (the pipeline's motions do). ``threads``: torch threads
-    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting)."""
-    with torch_threads(threads):
-        return _measure_job(
-            source_body, source_mapping, source_view, target, target_mapping, before, after, reference,
-            source_contacts, include_series, context, notes,
-        )  # fmt: skip
-
-
-def _measure_job(
-    source_body: Character,
-    source_mapping: JointMapping,
-    source_view: Motion,
-    target: Character,
-    target_mapping: JointMapping,
-    before: Motion,
-    after: Motion | None,
-    reference: Motion | None,
-    source_contacts: SourceContactResult | None,
-    include_series: bool,
-    context: dict[str, Any] | None,
-    notes: list[str] | None,
-) -> JobMeasurement:
-    lengths = {"source view": source_view.num_frames, "before": before.num_frames}
-    if after is not None:
-        lengths["after"] = after.num_frames
-    if reference is not None:
-        lengths["reference"] = reference.num_frames
-    if len(set(lengths.values())) != 1:
-        raise ValueError(f"the motions to measure must have the same number of frames, got {lengths}")
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-    found = source_contacts or detect_source_contacts(source_body, source_mapping, source_view)
-    timings["contacts"] = time.perf_counter() - t
-    t = time.perf_counter()
-    if found.self_contacts.count:
-        corr = build_correspondence(source_body, source_mapping, target, target_mapping)
-        constraints = transfer_contacts(found.self_contacts, corr)
-    else:
-        constraints = no_contacts(source_view.num_frames)
-    timings["correspondence"] = time.perf_counter() - t
-    t = time.perf_counter()
-    _, sdf = part_sdf_for(target, target_mapping)
-    timings["sdf"] = time.perf_counter() - t
-    t = time.perf_counter()
-    ref_measures = None
-    if reference is not None:
-        _, ref_measures = compute_metrics(target, target_mapping, sdf, reference)
-    before_metrics, before_measures = compute_metrics(
-        target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet
-    )
-    after_metrics, after_measures = None, None
-    if after is not None:
-        after_metrics, after_measures = compute_metrics(
-            target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
-            reference=ref_measures, source_feet=found.feet,
-        )  # fmt: skip
-    timings["metrics"] = time.perf_counter() - t
-    report = build_metrics_report(
-        before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
-        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series,
-    )  # fmt: skip
-    return JobMeasurement(report, found, constraints, before_measures, after_measures)
+def method_options(method: str, fps: float | None) -> RetargetOptions:
+    """The job options of ``method``: its refinement stages on, the others off, contacts on."""
+    stages = {n: n in METHODS[method] for n in REFINEMENT_STAGE_NAMES}
+    return RetargetOptions(fps=fps, stages={"contacts": True, **stages})
 
 
 # --- the evaluation table -----------------------------------------------------------------------------------
@@ -404,17 +195,21 @@ def run_evaluation(
     body_groups: dict[str, str] | None = None,
     log: Callable[[str], None] | None = print,
     threads: int | None = MEASURE_THREADS,
+    source_character: str | Path | None = None,
 ) -> EvalTable:
     """Run ``methods`` (default: copy) on every motion x body and summarise.
 
     motions: BVH/glTF/FBX files; bodies: character files or ``builtin:<preset>``; ``max_frames``: first frames
-    of each clip (after resampling to ``fps``; None: all). Bodies are grouped by bulk index into thirds
+    of each clip (after resampling to ``fps``; None: all); ``source_character``: the body performing the source
+    motions (default: the motion file's own mesh, or a built-in body sized to the source skeleton). Bodies are grouped by bulk index into thirds
     (:func:`bulk_groups`; ``body_groups`` overrides: name -> group); a clip is a contact clip when at least
     ``contact_fraction`` of its frames have a hand self-contact on the source body. Writes ``eval.json`` and
     ``eval.md`` into ``out_dir`` when given. ``threads``: torch threads during the run (see
     :data:`MEASURE_THREADS`)."""
     with torch_threads(threads):
-        return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups, log)
+        return _run_evaluation(
+            motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups, log, source_character
+        )
 
 
 def _run_evaluation(
@@ -427,9 +222,9 @@ def _run_evaluation(
     contact_fraction: float,
     body_groups: dict[str, str] | None,
     log: Callable[[str], None] | None,
+    source_character: str | Path | None,
 ) -> EvalTable:
-    from retarget_core.resample import resample
-    from retarget_core.source_body import source_body_for
+    from retarget_core.pipeline import prepare, refine
 
     started = time.perf_counter()
     methods = list(methods or ["copy"])
@@ -439,87 +234,45 @@ def _run_evaluation(
     order = ["copy"] + [m for m in methods if m != "copy"]
     say = log or (lambda _m: None)
 
-    targets: list[LoadedCharacter] = []
     infos: list[BodyInfo] = []
     for b in bodies:
-        loaded = load_character(b)
-        targets.append(loaded)
-        infos.append(
-            BodyInfo(
-                name=loaded.character.name,
-                height_m=round(loaded.character.height, 4),
-                bulk_index=round(bulk_index(loaded.character), 5),
-                group="",
-            )
-        )
+        tc = load_character(b).character
+        infos.append(BodyInfo(name=tc.name, height_m=round(tc.height, 4), bulk_index=round(bulk_index(tc), 5), group=""))
     for info, group in zip(infos, bulk_groups([i.bulk_index for i in infos]), strict=True):
         info.group = (body_groups or {}).get(info.name) or group
 
     rows: list[EvalRow] = []
     clips: list[ClipInfo] = []
     for path in motions:
-        source = load_motion(path)
-        motion = source.motion
-        if fps is not None:
-            motion = resample(motion, fps)
-        if max_frames is not None:
-            motion = motion.slice(0, max_frames)
-        source.motion = motion
-        if source.source_character is not None:
-            body, body_map = source.source_character.character, source.source_character.mapping
-        else:
-            body, body_map = source_body_for(motion.skeleton, source.mapping)
-        from retarget_core.copy_retarget import copy_retarget
-
-        view = copy_retarget(motion, source.mapping, body.skeleton, body_map)
-        t = time.perf_counter()
-        found = detect_source_contacts(body, body_map, view)
-        contact_frames = int(found.self_contacts.frames_with_contact().sum())
-        group = (
-            "contact" if contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0 else "no-contact"
-        )
-        pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in found.self_contacts.summary()[:6]]
-        clips.append(
-            ClipInfo(
-                name=motion.name,
-                frames=motion.num_frames,
-                fps=motion.fps,
-                contact_frames=contact_frames,
-                group=group,
-                contacts=pairs,
-            )
-        )
-        say(
-            f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({group}), contacts {time.perf_counter() - t:.1f}s"
-        )
-        for target, info in zip(targets, infos, strict=True):
-            tc = target.character
-            results = {m: METHODS[m](source, target) for m in order}
+        clip_info: ClipInfo | None = None
+        for b, info in zip(bodies, infos, strict=True):
             t = time.perf_counter()
-            copy_measure = measure_job(
-                body, body_map, view, tc, target.mapping, results["copy"], source_contacts=found, include_series=False
-            )
-            rows.append(
-                EvalRow(
-                    method="copy", body=info.name, clip=motion.name, values=_summary_values(copy_measure.report, "copy")
-                )
-            )
-            for m in order[1:]:
+            inputs = JobInputs(path, b, source_character, method_options("copy", fps))
+            prepared = prepare(inputs, max_frames=max_frames)
+            found = prepared.contacts
+            if clip_info is None:
+                motion = prepared.source.motion
+                contact_frames = int(found.self_contacts.frames_with_contact().sum())
+                enough = contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0
+                pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in found.self_contacts.summary()[:6]]
+                clip_info = ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps,
+                                     contact_frames=contact_frames, group="contact" if enough else "no-contact",
+                                     contacts=pairs)  # fmt: skip
+                clips.append(clip_info)
+                say(f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({clip_info.group})")
+            for m in order:
+                after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
+                p = prepared
                 job = measure_job(
-                    body,
-                    body_map,
-                    view,
-                    tc,
-                    target.mapping,
-                    results["copy"],
-                    results[m],
-                    source_contacts=found,
-                    include_series=False,
-                )
-                rows.append(EvalRow(method=m, body=info.name, clip=motion.name, values=_summary_values(job.report, m)))
-            v = rows[-len(order)].values
+                    p.source_body.character, p.source_body.mapping, p.source_view, p.target.character,
+                    p.target.mapping, p.before, after, source_contacts=found, constraints=p.constraints,
+                    include_series=False, threads=None,
+                )  # fmt: skip
+                rows.append(EvalRow(method=m, body=info.name, clip=clip_info.name, values=_summary_values(job.report, m)))
+            v = rows[-1].values
             say(
-                f"  {info.name:>20}: pen. vol. {_fmt(v['penetration_volume'])} cm^3, max {_fmt(v['penetration_max_depth'])} cm ({time.perf_counter() - t:.1f}s)"
+                f"  {info.name:>20}: {order[-1]} pen. verts {_fmt(v['penetrating_vertices_percent'])} %, "
+                f"max {_fmt(v['penetration_max_depth'])} cm ({time.perf_counter() - t:.1f}s)"
             )
 
     body_group = {i.name: i.group for i in infos}
@@ -551,7 +304,8 @@ def _run_evaluation(
         groups=groups,
         per_body=per_body,
         seconds=round(time.perf_counter() - started, 2),
-        settings={"max_frames": max_frames, "fps": fps, "contact_fraction": contact_fraction},
+        settings={"max_frames": max_frames, "fps": fps, "contact_fraction": contact_fraction,
+                  "methods": {m: list(METHODS[m]) for m in order}},
     )
     say(table.to_markdown())
     if out_dir is not None:
@@ -573,14 +327,7 @@ __all__ = [
     "EvalTable",
     "bulk_groups",
     "bulk_index",
-    "JobMeasurement",
-    "SourceContactResult",
-    "MEASURE_THREADS",
-    "detect_source_contacts",
-    "measure_job",
-    "torch_threads",
-    "part_sdf_for",
-    "register_method",
+    "method_options",
     "run_evaluation",
     "write_eval_table",
 ]

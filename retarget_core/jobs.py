@@ -33,6 +33,15 @@ class JobInputs:
     options: RetargetOptions = field(default_factory=RetargetOptions)
 
 
+OUTPUT_FILES: dict[str, str] = {
+    "result_glb": "result.glb",
+    "before_glb": "before.glb",
+    "source_glb": "source.glb",
+    "metrics_json": "metrics.json",
+}
+"""The files of a finished job, by :class:`JobOutputs` field: the one place they are named."""
+
+
 @dataclass
 class JobOutputs:
     """What a finished job wrote into its output directory."""

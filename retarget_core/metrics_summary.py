@@ -3,10 +3,10 @@ docs/metrics.md) with what was read and what ran in ``context``."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from retarget_core.pipeline import Retargeted
+from retarget_core.measure import measure_job
+from retarget_core.retargeted import Retargeted
 
 
 def job_context(result: Retargeted) -> dict[str, Any]:
@@ -37,6 +37,8 @@ def job_context(result: Retargeted) -> dict[str, Any]:
         },
         "stages_run": result.stages_run,
         "stages_skipped": result.stages_skipped,
+        "stage_reports": result.stage_reports,
+        "body_cache": "hit" if result.prepared.body_cached else "built",
         "warnings": result.warnings,
     }
 
@@ -44,12 +46,11 @@ def job_context(result: Retargeted) -> dict[str, Any]:
 def build_metrics(result: Retargeted, include_series: bool = True) -> dict[str, Any]:
     """The job's metrics JSON as a dict: contacts detected on the source, carried to the target, and the metrics
     of "before" (copy baseline) and "after" (the result) on the target."""
-    from retarget_core.evaluation import measure_job
-
+    p = result.prepared
     measured = measure_job(
-        result.source_body.character, result.source_body.mapping, result.source_view,
-        result.target.character, result.target.mapping, result.before, result.after,
-        context=job_context(result), notes=list(result.warnings), include_series=include_series,
+        p.source_body.character, p.source_body.mapping, p.source_view, p.target.character, p.target.mapping,
+        p.before, result.after, source_contacts=p.contacts, constraints=p.constraints,
+        context=job_context(result), notes=list(result.warnings), include_series=include_series, threads=None,
     )  # fmt: skip
     report: dict[str, Any] = measured.report.model_dump(mode="json")
     return report

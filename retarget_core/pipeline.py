@@ -1,8 +1,11 @@
 """The retargeting pipeline: the only place that knows the order of the stages.
 
-read -> copy baseline ("before") -> [later stages refine it into "after"] -> metrics -> write.
-Stages not implemented in this version are reported as skipped in the metrics JSON; the result is then the
-copy baseline and says so.
+    read -> copy onto the source body -> contacts -> copy baseline ("before", placed by its mesh) -> body
+         -> refinement stages (retarget_core.refine, in the order of retarget_core.stages) -> metrics -> write
+
+:func:`prepare` runs everything up to "before", :func:`refine` the refinement stages on it, :func:`retarget`
+both, :func:`run_job` all of it with the files written. The CLI, the worker and ``retarget eval`` all call
+these; none rebuilds the sequence.
 """
 
 from __future__ import annotations
@@ -13,25 +16,37 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from retarget_core.body_cache import body_assets
+from retarget_core.contacts.foot_contact import FOOT_JOINTS, FootContacts
+from retarget_core.contacts.self_contact import SelfContacts
 from retarget_core.copy_retarget import copy_retarget
 from retarget_core.io.gltf_write import write_glb
-from retarget_core.jobs import CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
+from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
-from retarget_core.motion import Motion
+from retarget_core.measure import SourceContactResult, carry_contacts, detect_source_contacts, torch_threads
+from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.normalize import NormalizationReport
+from retarget_core.options import RetargetOptions
+from retarget_core.refine import RefineContext, refinement_stages, resolve_device
 from retarget_core.resample import resample, select_frames
+from retarget_core.retargeted import Prepared, Retargeted
 
-# Share of the job's time each stage takes, for the progress fraction.
-STAGE_WEIGHTS: dict[str, float] = {"read": 0.25, "copy": 0.15, "metrics": 0.35, "write": 0.25}
-# Stages that would refine "before" into "after"; none is in this version. (Contacts are detected and measured
-# in the metrics stage, not yet enforced.)
-REFINEMENT_STAGES = ("recurrent", "eso", "collisions", "foot_lock")
+# Share of the job's time each stage takes, for the progress fraction (measured on a 300-frame clip).
+STAGE_WEIGHTS: dict[str, float] = {
+    "read": 0.08, "copy": 0.04, "contacts": 0.12, "body": 0.06,
+    "recurrent": 0.05, "eso": 0.1, "collisions": 0.2, "foot_lock": 0.03,
+    "metrics": 0.22, "write": 0.1,
+}  # fmt: skip
+PIPELINE_THREADS = 1
+"""Torch intra-op threads while a job runs: the stages are many small tensor operations, for which OpenMP's
+parallel regions cost more than they save on a small shared CPU (benchmarks/results/metrics_benchmark*.json)."""
 
 
 @dataclass
 class StageClock:
-    """Times stages, reports progress and honours cancellation between stages."""
+    """Times stages, reports progress (overall and within a stage) and honours cancellation between stages."""
 
     progress: ProgressCallback | None = None
     should_cancel: CancelCheck | None = None
@@ -42,30 +57,20 @@ class StageClock:
     def stage(self, name: str) -> Iterator[None]:
         if self.should_cancel is not None and self.should_cancel():
             raise JobCanceled(f"canceled before stage {name}")
-        if self.progress is not None:
-            self.progress(name, self.done)
+        self._tell(name, self.done)
         start = time.perf_counter()
         yield
-        self.seconds[name] = round(time.perf_counter() - start, 4)
+        self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - start, 4)
         self.done = min(1.0, self.done + STAGE_WEIGHTS.get(name, 0.0))
+        self._tell(name, self.done)
+
+    def within(self, name: str) -> Any:
+        """A callback ``(fraction of stage name done) -> None`` for long stages."""
+        return lambda fraction: self._tell(name, min(1.0, self.done + STAGE_WEIGHTS.get(name, 0.0) * fraction))
+
+    def _tell(self, name: str, fraction: float) -> None:
         if self.progress is not None:
-            self.progress(name, self.done)
-
-
-@dataclass
-class Retargeted:
-    """In-memory result of :func:`retarget`: the inputs as read, the source body with the source motion on it,
-    and the before/after motions on the target."""
-
-    source: LoadedMotion
-    source_body: LoadedCharacter
-    source_view: Motion
-    target: LoadedCharacter
-    before: Motion
-    after: Motion
-    stages_run: list[str]
-    stages_skipped: list[str]
-    warnings: list[str]
+            self.progress(name, fraction)
 
 
 def source_body(inputs: JobInputs, source: LoadedMotion) -> LoadedCharacter:
@@ -86,41 +91,115 @@ def source_body(inputs: JobInputs, source: LoadedMotion) -> LoadedCharacter:
     return LoadedCharacter(body, mapping, report, "builtin", report.notes)
 
 
-def prepare_source(inputs: JobInputs) -> LoadedMotion:
-    """Read the motion and apply the frame range and frame rate of the options."""
+def prepare_source(inputs: JobInputs, max_frames: int | None = None) -> LoadedMotion:
+    """Read the motion and apply the options' frame range, then their frame rate, then ``max_frames`` (the
+    first frames after resampling; the evaluation uses it)."""
     opts = inputs.options
     loaded = load_motion(inputs.motion_path, clip=opts.clip, fps=opts.fps, joint_map_override=opts.joint_map_override)
     motion = select_frames(loaded.motion, opts.frame_start, opts.frame_end)
     if opts.fps is not None:
         motion = resample(motion, opts.fps)
+    if max_frames is not None:
+        motion = motion.slice(0, max_frames)
     loaded.motion = motion
     return loaded
 
 
-def retarget(inputs: JobInputs, clock: StageClock | None = None) -> Retargeted:
-    """Run the stages that compute motions (no files written)."""
+def _no_self_contacts(found: SourceContactResult) -> SourceContactResult:
+    sc = found.self_contacts
+    empty = SelfContacts(sc.num_frames, sc.part_names, *(t[:0] for t in (sc.frame, sc.hand, sc.other, sc.pairs,
+                         sc.distance, sc.intersecting, sc.cosine)), params=sc.params)  # fmt: skip
+    return SourceContactResult(empty, found.feet, found.body_name)
+
+
+def prepare(inputs: JobInputs, clock: StageClock | None = None, *, max_frames: int | None = None) -> Prepared:
+    """Read, find the contacts on the source and make the copy baseline ("before") on the target."""
     clock = clock or StageClock()
     opts = inputs.options
     with clock.stage("read"):
-        source = prepare_source(inputs)
+        source = prepare_source(inputs, max_frames)
         target = load_character(inputs.target, joint_map_override=opts.target_joint_map_override)
         body = source_body(inputs, source)
+    with clock.stage("copy"):
+        source_view = copy_retarget(
+            source.motion, source.mapping, body.character.skeleton, body.mapping, in_place=opts.in_place
+        )
+    with clock.stage("contacts"):
+        found = detect_source_contacts(body.character, body.mapping, source_view)
+        if not opts.stages.enabled("contacts"):
+            found = _no_self_contacts(found)
+        constraints = carry_contacts(found.self_contacts, body.character, body.mapping, target.character, target.mapping)
+        target_feet = FootContacts(found.feet.labels, [target.mapping.joints.get(c, -1) for _, c in FOOT_JOINTS])
     with clock.stage("copy"):
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
         )
-        source_view = copy_retarget(
-            source.motion, source.mapping, body.character.skeleton, body.mapping, in_place=opts.in_place
-        )
-    requested = [s for s in REFINEMENT_STAGES if getattr(opts.stages, s)]
+    with clock.stage("body"):
+        assets, cached = body_assets(target.character, target.mapping)
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
-    if requested:
-        warnings.append(
-            "refinement stages "
-            + ", ".join(requested)
-            + " are not available in this version: the result is the copy baseline"
-        )
-    return Retargeted(source, body, source_view, target, before, before, ["read", "copy"], requested, warnings)
+    return Prepared(inputs, source, body, target, source_view, found, constraints, target_feet, before, assets,
+                    warnings, cached)  # fmt: skip
+
+
+def refine(prepared: Prepared, clock: StageClock | None = None, options: RetargetOptions | None = None) -> Retargeted:
+    """Run the refinement stages switched on in ``options`` (default: the job's) on "before"."""
+    clock = clock or StageClock()
+    opts = options or prepared.inputs.options
+    device = resolve_device(opts.device)
+    warnings = list(prepared.warnings)
+    if device.type != opts.device.split(":")[0] and opts.device != "auto":
+        warnings.append(f"device {opts.device!r} is not available here: the job ran on the CPU")
+    ctx = RefineContext(
+        target=prepared.target.character, target_mapping=prepared.target.mapping,
+        parts=prepared.assets.parts, sdf=prepared.assets.sdf,
+        source_body=prepared.source_body.character, source_mapping=prepared.source_body.mapping,
+        source_view=prepared.source_view, self_contacts=prepared.contacts.self_contacts,
+        constraints=prepared.constraints, feet=prepared.target_feet, before=prepared.before,
+        options=opts, device=device,
+    )  # fmt: skip
+    motion = prepared.before
+    run, skipped, reports = ["read", "copy", "contacts", "body"], [], {}
+    for info, stage in refinement_stages():
+        if not opts.stages.enabled(info.name):
+            continue
+        if stage is None:
+            skipped.append(info.name)
+            continue
+        ctx.progress = clock.within(info.name)
+        with clock.stage(info.name):
+            outcome = stage(ctx, motion)
+        motion = outcome.motion
+        reports[info.name] = {**outcome.report, "seconds": clock.seconds[info.name]}
+        run.append(info.name)
+    if skipped:
+        warnings.append(f"stages {', '.join(skipped)} are not available in this version and were skipped")
+    if motion is prepared.before:
+        warnings.append("no refinement stage ran: the result is the copy baseline")
+    return Retargeted(prepared, motion, run, skipped, reports, warnings)
+
+
+def retarget(inputs: JobInputs, clock: StageClock | None = None) -> Retargeted:
+    """Every stage that computes motions (no files written)."""
+    clock = clock or StageClock()
+    with torch_threads(PIPELINE_THREADS):
+        return refine(prepare(inputs, clock), clock)
+
+
+def write_outputs(result: Retargeted, out_dir: Path, metrics: dict[str, Any]) -> dict[str, Path]:
+    """The job's files (:data:`retarget_core.jobs.OUTPUT_FILES`) in ``out_dir``, written under temporary names
+    and renamed at the end, so a failed or canceled job never leaves a half-written result that looks complete."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    clip = result.source.motion.name
+    character = result.target.character
+    parts = {key: out_dir / f"{name}.part" for key, name in OUTPUT_FILES.items()}
+    write_glb(character, result.after, parts["result_glb"], clip_name=clip)
+    write_glb(character, result.before, parts["before_glb"], clip_name=clip)
+    write_glb(result.source_body.character, result.source_view, parts["source_glb"], clip_name=clip)
+    parts["metrics_json"].write_text(json.dumps(metrics, separators=(",", ":")))
+    paths = {key: out_dir / name for key, name in OUTPUT_FILES.items()}
+    for key, tmp in parts.items():
+        tmp.replace(paths[key])
+    return paths
 
 
 def run_job(
@@ -129,35 +208,20 @@ def run_job(
     progress: ProgressCallback | None = None,
     should_cancel: CancelCheck | None = None,
 ) -> JobOutputs:
-    """Retarget, measure and write ``result.glb``, ``before.glb`` and ``metrics.json`` into ``out_dir``.
-
-    Files are written under temporary names and renamed at the end, so a failed or canceled job never leaves
-    a half-written result that looks complete."""
-    from retarget_core.metrics_summary import build_metrics, headline
-
+    """Retarget, measure and write the job's files (:data:`retarget_core.jobs.OUTPUT_FILES`) into ``out_dir``."""
     clock = StageClock(progress, should_cancel)
-    result = retarget(inputs, clock)
-    with clock.stage("metrics"):
-        metrics = build_metrics(result)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {name: out_dir / name for name in ("result.glb", "before.glb", "source.glb", "metrics.json")}
+    with torch_threads(PIPELINE_THREADS):
+        result = refine(prepare(inputs, clock), clock)
+        with clock.stage("metrics"):
+            metrics = build_metrics(result)
     with clock.stage("write"):
-        character = result.target.character
-        write_glb(character, result.after, out_dir / "result.glb.part", clip_name=result.source.motion.name)
-        write_glb(character, result.before, out_dir / "before.glb.part", clip_name=result.source.motion.name)
-        write_glb(
-            result.source_body.character,
-            result.source_view,
-            out_dir / "source.glb.part",
-            clip_name=result.source.motion.name,
-        )
         metrics["context"]["stage_seconds"] = dict(clock.seconds)
-        (out_dir / "metrics.json.part").write_text(json.dumps(metrics, separators=(",", ":")))
-    for name, path in paths.items():
-        (out_dir / f"{name}.part").replace(path)
+        paths = write_outputs(result, out_dir, metrics)
+    metrics["context"]["stage_seconds"] = dict(clock.seconds)
     if progress is not None:
         progress("done", 1.0)
-    return JobOutputs(
-        paths["result.glb"], paths["before.glb"], paths["metrics.json"], headline(metrics),
-        dict(clock.seconds), result.warnings, paths["source.glb"],
-    )  # fmt: skip
+    return JobOutputs(paths["result_glb"], paths["before_glb"], paths["metrics_json"], headline(metrics),
+                      dict(clock.seconds), result.warnings, paths["source_glb"])  # fmt: skip
+
+
+__all__ = ["StageClock", "prepare", "prepare_source", "refine", "retarget", "run_job", "source_body", "write_outputs"]

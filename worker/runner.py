@@ -23,11 +23,11 @@ from api.joblife import queue_webhook
 from api.models import Job
 from api.settings import Settings
 from api.storage import Storage
+from retarget_core.jobs import OUTPUT_FILES
 
 log = logging.getLogger(__name__)
 
-OUTPUT_FIELDS = {"result.glb": "result_glb", "before.glb": "before_glb", "metrics.json": "metrics_json",
-                 "source.glb": "source_glb"}
+OUTPUT_FIELDS = {name: field for field, name in OUTPUT_FILES.items()}  # file name -> JobOutputs field
 
 
 def json_safe(value: Any) -> Any:
@@ -227,7 +227,7 @@ class JobRun:
                 p = out_dir / name
             if p is not None and Path(p).is_file():
                 files[name] = self.storage.relative(Path(p))
-        missing = [n for n in ("result.glb", "before.glb", "metrics.json") if n not in files]
+        missing = [n for n in OUTPUT_FILES.values() if n != OUTPUT_FILES["source_glb"] and n not in files]
         if missing:
             return self.finish("failed", error_kind="internal",
                                message=f"internal error: the pipeline did not write {', '.join(missing)}")

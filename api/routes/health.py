@@ -15,9 +15,10 @@ from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.models import WorkerProcess
 from api.queue import IO_QUEUE, JOB_QUEUES
 from api.routes.assets import ALLOWED_FORMATS
-from api.schemas import KeyInfo, ServiceInfo
+from api.schemas import KeyInfo, ServiceInfo, StageOut
 from api.security import SIGNATURE_HEADER
 from api.serialize import RESULT_FILES
+from retarget_core.stages import STAGES
 
 router = APIRouter(tags=["health"])
 
@@ -91,6 +92,8 @@ def info(settings: SettingsDep) -> ServiceInfo:
         character_formats=list(ALLOWED_FORMATS["character"]),
         motion_formats=list(ALLOWED_FORMATS["motion"]),
         result_files=list(RESULT_FILES),
+        stages=[StageOut(name=s.name, label=s.label, description=s.description, default=s.default,
+                         available=s.available) for s in STAGES],
     )
 
 

@@ -162,7 +162,7 @@ def test_report_round_trip(boxes, tmp_path: Path) -> None:
 
 
 def test_measure_job_carries_source_contacts_to_the_target() -> None:
-    from retarget_core.evaluation import measure_job
+    from retarget_core.measure import measure_job
 
     src = load_preset("male_average")
     src_map = mapping_by_name(src.skeleton.names)
@@ -188,7 +188,7 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
 def test_copy_baseline_penetration_grows_with_bulk(shared_data: Path) -> None:
     """The measuring stick on real data: the same clip copied onto a skinny and a bulky body."""
     from retarget_core.copy_retarget import copy_retarget
-    from retarget_core.evaluation import part_sdf_for
+    from retarget_core.body_cache import body_assets
     from retarget_core.loading import load_character, load_motion
 
     src = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh")
@@ -196,7 +196,7 @@ def test_copy_baseline_penetration_grows_with_bulk(shared_data: Path) -> None:
     for name in ("mh_female_skinny", "mh_male_bulky"):
         tgt = load_character(shared_data / "characters" / f"{name}.glb")
         motion = copy_retarget(src.motion, src.mapping, tgt.character.skeleton, tgt.mapping).slice(0, 120)
-        _, sdf = part_sdf_for(tgt.character, tgt.mapping)
+        sdf = body_assets(tgt.character, tgt.mapping)[0].sdf
         summary = summarize(measure_clip(tgt.character, tgt.mapping, sdf, motion)).summary
         volume[name] = summary.penetration_volume.value_at_180
     assert volume["mh_male_bulky"] > 5 * volume["mh_female_skinny"], volume
@@ -234,7 +234,7 @@ def test_run_evaluation_writes_the_table(shared_data: Path, tmp_path: Path) -> N
 
 
 def test_torch_threads_is_restored() -> None:
-    from retarget_core.evaluation import torch_threads
+    from retarget_core.measure import torch_threads
 
     before = torch.get_num_threads()
     with torch_threads(1):

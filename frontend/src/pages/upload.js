@@ -8,13 +8,6 @@ import { esc, formatBytes, formatNumber } from '../format.js';
 import { rememberAsset } from '../names.js';
 import { batchHash, reviewHash } from '../router.js';
 
-const STAGES = [
-  ['contacts', 'Contacts', 'detect self- and foot contacts on the source'],
-  ['recurrent', 'Recurrent network', 'geometry-conditioned retargeting network'],
-  ['eso', 'ESO', 'encoder-space optimisation where constraints are not met'],
-  ['collisions', 'Collisions', 'body-part SDF collision resolution'],
-  ['foot_lock', 'Foot lock', 'keep planted feet in place'],
-];
 
 export function mountUpload(root) {
   const state = { motions: [], targets: [], uploads: new Set(), alive: true, info: null };
@@ -36,7 +29,7 @@ export function mountUpload(root) {
           <label class="check"><input type="checkbox" name="in_place"> In place (remove horizontal root motion)</label>
           <label class="batch-name" hidden>Batch name <input type="text" name="batch_name" maxlength="300" placeholder="optional"></label>
         </div>
-        <div class="stage-switches">Stages: ${STAGES.map(([k, label, title]) => `<label class="check" title="${esc(title)}"><input type="checkbox" name="stage_${k}" checked> ${label}</label>`).join('')}</div>
+        <div class="stage-switches">Stages: <span class="stage-list">loading…</span></div>
       </fieldset>
       <div class="submit-row">
         <button type="submit" class="btn primary" data-act="submit" disabled>Submit</button>
@@ -63,6 +56,7 @@ export function mountUpload(root) {
 
   for (const kind of ['motion', 'target']) wirePicker(root, kind, state, refresh);
   loadExisting(root, state, refresh);
+  loadStages(root, state);
 
   form.addEventListener('submit', async (e) => {
     e.preventDefault();
@@ -75,7 +69,7 @@ export function mountUpload(root) {
       fps: num('fps'),
       in_place: fd.get('in_place') === 'on',
       eso_iterations: num('eso_iterations') ?? 30,
-      stages: Object.fromEntries(STAGES.map(([k]) => [k, fd.get(`stage_${k}`) === 'on'])),
+      stages: Object.fromEntries((state.info?.stages || []).map((st) => [st.name, fd.get(`stage_${st.name}`) === 'on'])),
     };
     if (options.frame_end !== null && options.frame_end <= options.frame_start) {
       note.textContent = 'The end frame must be after the first frame.';
@@ -262,6 +256,24 @@ export function assetInfoHtml(asset) {
       ${missing.length ? `<p>Missing: ${missing.join(', ')}</p>` : ''}</details>` : ''}
     ${Array.isArray(i.joints) && i.joints.length ? `<details class="joints"><summary>All ${i.joints.length} joints</summary><p>${i.joints.map((j) => `<code>${esc(j)}</code>`).join(' ')}</p></details>` : ''}
     ${warnings.length ? `<ul class="warnings">${warnings.map((w) => `<li>${esc(w)}</li>`).join('')}</ul>` : '<p class="ok">No warnings.</p>'}`;
+}
+
+/** The stage switches, in pipeline order, from /v1/info (the service's one list of stages). */
+async function loadStages(root, state) {
+  const list = root.querySelector('.stage-list');
+  try {
+    state.info = await api('/v1/info');
+  } catch {
+    list.textContent = 'unavailable (the service did not answer)';
+    return;
+  }
+  if (!state.alive) return;
+  list.innerHTML = state.info.stages.map((st) => {
+    const title = st.available ? st.description : `${st.description} (not available in this version)`;
+    const on = st.default && st.available ? ' checked' : '';
+    const off = st.available ? '' : ' disabled';
+    return `<label class="check" title="${esc(title)}"><input type="checkbox" name="stage_${esc(st.name)}"${on}${off}> ${esc(st.label)}</label>`;
+  }).join('');
 }
 
 async function loadExisting(root, state, refresh) {

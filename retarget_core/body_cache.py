@@ -1,0 +1,116 @@
+"""Per-body work cached by the character's content: body parts and per-part SDF grids.
+
+The same body read twice (another upload of the same file, the next job on a built-in body) gets the same key,
+so only its first job pays for the grids (seconds on a 13k-vertex body). Two levels: a small in-process LRU,
+and files under :func:`cache_dir` that every process on the machine (CLI runs, workers) shares.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from retarget_core.body_parts import BodyParts, body_parts
+from retarget_core.canonical import JointMapping
+from retarget_core.character import Character
+from retarget_core.energy.sdf import PartSDF, SDFParams, build_part_sdf
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1
+"""Bump when what is cached changes meaning (grid layout, parameters): old files are then ignored."""
+MEMORY_ENTRIES = 16
+CACHE_DIR_ENV = "RETARGET_CACHE_DIR"
+
+
+@dataclass
+class BodyAssets:
+    """What the measures and the refinement stages precompute once per body."""
+
+    key: str
+    parts: BodyParts
+    sdf: PartSDF
+
+
+_MEMORY: OrderedDict[str, BodyAssets] = OrderedDict()
+
+
+def cache_dir() -> Path | None:
+    """``$RETARGET_CACHE_DIR`` (empty: no disk cache), default ``~/.cache/retarget/bodies``."""
+    value = os.environ.get(CACHE_DIR_ENV)
+    if value is not None:
+        return Path(value) if value else None
+    return Path.home() / ".cache" / "retarget" / "bodies"
+
+
+def character_key(character: Character, mapping: JointMapping) -> str:
+    """A content hash of the mesh, skin, skeleton rest pose, mapping and SDF parameters."""
+    h = hashlib.sha1(f"v{CACHE_VERSION}:{SDFParams()!r}".encode())
+    sk = character.skeleton
+    for t in (character.vertices, character.faces, character.skin_joints, character.skin_weights,
+              sk.rest_rotations, sk.rest_translations):  # fmt: skip
+        h.update(t.detach().contiguous().numpy().tobytes())
+    h.update(json.dumps([sk.parents, sorted(mapping.joints.items())]).encode())
+    return h.hexdigest()
+
+
+def _remember(assets: BodyAssets) -> BodyAssets:
+    _MEMORY[assets.key] = assets
+    _MEMORY.move_to_end(assets.key)
+    while len(_MEMORY) > MEMORY_ENTRIES:
+        _MEMORY.popitem(last=False)
+    return assets
+
+
+def _read(path: Path) -> tuple[BodyParts, PartSDF] | None:
+    try:
+        parts, sdf = torch.load(path, weights_only=False)
+        return parts, sdf
+    except Exception as exc:  # a truncated or foreign file: rebuild
+        log.warning("ignoring unreadable body cache %s: %s", path, exc)
+        return None
+
+
+def _write(path: Path, parts: BodyParts, sdf: PartSDF) -> None:
+    """Atomically (temporary file + rename), so concurrent workers never read half a file."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".part")
+        with os.fdopen(fd, "wb") as fh:
+            torch.save((parts, sdf), fh)
+        os.replace(tmp, path)
+    except OSError as exc:
+        log.warning("could not write body cache %s: %s", path, exc)
+
+
+def body_assets(character: Character, mapping: JointMapping) -> tuple[BodyAssets, bool]:
+    """The body's parts and SDF grids, and whether they came from a cache (memory or disk)."""
+    key = character_key(character, mapping)
+    if key in _MEMORY:
+        _MEMORY.move_to_end(key)
+        return _MEMORY[key], True
+    folder = cache_dir()
+    path = folder / f"{key}.pt" if folder is not None else None
+    if path is not None and path.is_file() and (found := _read(path)) is not None:
+        return _remember(BodyAssets(key, *found)), True
+    parts = body_parts(character, mapping)
+    sdf = build_part_sdf(character, parts)
+    if path is not None:
+        _write(path, parts, sdf)
+    return _remember(BodyAssets(key, parts, sdf)), False
+
+
+def clear_memory() -> None:
+    """Forget the in-process entries (tests; the disk cache stays)."""
+    _MEMORY.clear()
+
+
+__all__ = ["BodyAssets", "body_assets", "cache_dir", "character_key", "clear_memory"]
