@@ -187,8 +187,8 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
 
 def test_copy_baseline_penetration_grows_with_bulk(shared_data: Path) -> None:
     """The measuring stick on real data: the same clip copied onto a skinny and a bulky body."""
-    from retarget_core.copy_retarget import copy_retarget
     from retarget_core.body_cache import body_assets
+    from retarget_core.copy_retarget import copy_retarget
     from retarget_core.loading import load_character, load_motion
 
     src = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh")
