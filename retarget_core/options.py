@@ -30,7 +30,7 @@ class RetargetOptions(BaseModel):
     clip: str | None = Field(default=None, description="Animation name or index when the motion file has several")
     in_place: bool = Field(default=False, description="Remove horizontal root motion")
     eso_iterations: int = Field(default=30, ge=0, le=1000, description="Encoder-space optimisation steps per window")
-    stages: StageSwitches = Field(default_factory=StageSwitches)  # type: ignore[valid-type]
+    stages: StageSwitches = Field(default_factory=StageSwitches)
     device: str = Field(default="cpu", pattern=r"^(cpu|cuda(:\d+)?|auto)$", description="Torch device: cpu, cuda, cuda:N or auto")
     joint_map_override: dict[str, str] | None = Field(
         default=None, description="Canonical joint name -> joint name in the motion's skeleton"

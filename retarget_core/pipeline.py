@@ -14,13 +14,14 @@ import json
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from torch import Tensor
+
 from retarget_core.body_cache import body_assets
 from retarget_core.contacts.foot_contact import FOOT_JOINTS, FootContacts
-from retarget_core.contacts.self_contact import SelfContacts
 from retarget_core.copy_retarget import copy_retarget
 from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
@@ -106,10 +107,11 @@ def prepare_source(inputs: JobInputs, max_frames: int | None = None) -> LoadedMo
 
 
 def _no_self_contacts(found: SourceContactResult) -> SourceContactResult:
+    """``found`` without its hand contacts (the contacts stage switched off; the feet stay)."""
     sc = found.self_contacts
-    empty = SelfContacts(sc.num_frames, sc.part_names, *(t[:0] for t in (sc.frame, sc.hand, sc.other, sc.pairs,
-                         sc.distance, sc.intersecting, sc.cosine)), params=sc.params)  # fmt: skip
-    return SourceContactResult(empty, found.feet, found.body_name)
+    per_contact = {f.name: getattr(sc, f.name)[:0] for f in fields(sc)
+                   if isinstance(getattr(sc, f.name), Tensor) and getattr(sc, f.name).shape[:1] == (sc.count,)}  # fmt: skip
+    return SourceContactResult(replace(sc, **per_contact), found.feet, found.body_name)
 
 
 def prepare(inputs: JobInputs, clock: StageClock | None = None, *, max_frames: int | None = None) -> Prepared:
