@@ -58,6 +58,11 @@ class Settings(BaseSettings):
     job_hard_time_limit_seconds: int = Field(default=1860, gt=0, description="A job's process is killed")
     max_job_attempts: int = Field(default=3, ge=1, description="Runs of a job whose worker vanished before it fails")
     heartbeat_interval_seconds: float = Field(default=5.0, gt=0, description="How often a running job says alive")
+    worker_device: str | None = Field(
+        default=None, pattern=r"^(cpu|cuda(:\d+)?|auto)$",
+        description="Torch device of this worker's jobs when a job does not choose one (default: cuda on the gpu "
+        "queue, cpu elsewhere)",
+    )
     heartbeat_timeout_seconds: float = Field(
         default=60.0, gt=0, description="Silence after which a running job's worker is taken for dead"
     )

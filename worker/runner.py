@@ -169,8 +169,11 @@ class JobRun:
         motion = path_or_builtin(job.motion_ref)
         target = path_or_builtin(job.target_ref)
         assert motion is not None and target is not None
+        options = RetargetOptions.model_validate(job.options or {})
+        if "device" not in (job.options or {}):
+            options.device = self.settings.worker_device or ("cuda" if job.queue == "gpu" else "cpu")
         return JobInputs(motion_path=Path(motion), target=target, source_character=path_or_builtin(job.source_ref),
-                         options=RetargetOptions.model_validate(job.options or {}))
+                         options=options)
 
     def run(self, pipeline: Callable[..., Any] | None = None) -> RunResult:
         """Claim and run; ``pipeline`` defaults to retarget_core.pipeline.run_job (tests pass their own)."""

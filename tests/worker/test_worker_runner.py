@@ -204,3 +204,20 @@ def test_progress_is_throttled(wsettings: Settings, n: int) -> None:
     assert job(wsettings, job_id).progress == 0.1
     run.progress("copy", 0.3)  # new stage: written
     assert job(wsettings, job_id).stage == "copy" and job(wsettings, job_id).progress == 0.3
+
+
+def test_job_device_comes_from_the_job_the_worker_or_its_queue(wsettings: Settings) -> None:
+    """A job that names no device runs on cuda from the gpu queue, on cpu elsewhere, or on the worker's
+    setting; a job's own choice wins."""
+    def device_of(settings: Settings, **values: Any) -> str:
+        job_id = add_job(settings, **values)
+        run = JobRun(settings, job_id, 1, "w1")
+        return str(run.inputs(job(settings, job_id)).options.device)
+
+    assert device_of(wsettings) == "cpu"
+    gpu_id = add_job(wsettings)
+    with session_scope(wsettings.resolved_database_url) as s:
+        s.execute(update(Job).where(Job.id == gpu_id).values(queue="gpu"))
+    assert str(JobRun(wsettings, gpu_id, 1, "w1").inputs(job(wsettings, gpu_id)).options.device) == "cuda"
+    assert device_of(wsettings, options={"device": "cpu"}) == "cpu"
+    assert device_of(wsettings.model_copy(update={"worker_device": "auto"})) == "auto"
