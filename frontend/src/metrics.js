@@ -203,6 +203,21 @@ export function mappingOf(report, side) {
 }
 
 /**
+ * What each refinement stage did, in pipeline order: [{name, seconds, framesChanged, figures: [[key, value]]}]
+ * from context.stage_reports (numbers and booleans only; nested objects are left out).
+ */
+export function stageReports(context) {
+  const reports = isObj(context) && isObj(context.stage_reports) ? context.stage_reports : {};
+  return Object.entries(reports).filter(([, r]) => isObj(r)).map(([name, r]) => ({
+    name,
+    seconds: isNum(r.seconds) ? r.seconds : null,
+    framesChanged: isNum(r.frames_changed) ? r.frames_changed : null,
+    figures: Object.entries(r).filter(([k, v]) => !['seconds', 'frames_changed'].includes(k)
+      && (isNum(v) || typeof v === 'boolean')),
+  }));
+}
+
+/**
  * Everything the viewer takes from a metrics JSON.
  * @param {any} report the parsed metrics JSON (or null when the job has none)
  */
@@ -234,6 +249,7 @@ export function readMetrics(report) {
     },
     penetration: { before: penetration(before), after: penetration(after) },
     mapping: { source: ok ? mappingOf(report, 'source') : null, target: ok ? mappingOf(report, 'target') : null },
+    stages: ok ? stageReports(report.context) : [],
     notes: ok ? [...(Array.isArray(report.notes) ? report.notes : []), ...(Array.isArray(report.warnings) ? report.warnings : [])].map(String) : [],
   };
 }

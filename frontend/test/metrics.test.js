@@ -115,3 +115,17 @@ test('series helpers', () => {
   assert.deepEqual(seriesRange([s, null]), [-2, 5]);
   assert.deepEqual(seriesRange([readSeries([0, 0])]), [0, 1]);
 });
+
+test('stage reports come in pipeline order with their own figures', async () => {
+  const { stageReports } = await import('../src/metrics.js');
+  const st = stageReports({ stage_reports: {
+    collisions: { frames_changed: 120, seconds: 1.5, penetration_after: 0.2, nested: { x: 1 }, label: 'x' },
+    foot_lock: { frames_changed: 0, seconds: 0.1, plants: 4, pelvis_lowered: true },
+  } });
+  assert.deepEqual(st.map((s) => s.name), ['collisions', 'foot_lock']);
+  assert.equal(st[0].framesChanged, 120);
+  assert.deepEqual(st[0].figures, [['penetration_after', 0.2]]);
+  assert.deepEqual(st[1].figures, [['plants', 4], ['pelvis_lowered', true]]);
+  assert.deepEqual(stageReports(null), []);
+  assert.deepEqual(stageReports({ stage_reports: 'nope' }), []);
+});

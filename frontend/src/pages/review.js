@@ -74,7 +74,7 @@ export function mountReview(root, jobId) {
       </div>
       <aside class="review-side">
         <div class="charts"><div class="charts-legend"><span style="color:${COLORS.before}">━ before</span> <span style="color:${COLORS.after}">━ after</span> <span class="hint">click a chart to jump to a frame</span></div></div>
-        <div class="side-col"><div class="summary"></div><div class="notes"></div></div>
+        <div class="side-col"><div class="summary"></div><div class="stage-reports"></div><div class="notes"></div></div>
       </aside></div>`;
     const results = job.results || {};
     const metricsP = results.metrics_json
@@ -212,6 +212,7 @@ async function buildViewer(body, job, views, metrics) {
     chartsEl.appendChild(p);
   }
   renderSummary(body.querySelector('.summary'), metrics);
+  renderStages(body.querySelector('.stage-reports'), metrics);
   renderNotes(body.querySelector('.notes'), job, metrics);
 
   const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
@@ -345,6 +346,19 @@ function renderSummary(el, metrics) {
   el.innerHTML = `<h2>Summary</h2><table class="summary-table">
     <thead><tr><th></th><th style="color:${COLORS.before}">before</th><th style="color:${COLORS.after}">after</th><th>change</th></tr></thead>
     <tbody>${rows}</tbody></table>`;
+}
+
+/** What each refinement stage changed (context.stage_reports): frames changed, seconds, its own figures. */
+function renderStages(el, metrics) {
+  if (!metrics.stages.length) {
+    el.innerHTML = '<p class="no-data" data-no-stages="true">No refinement stage ran: after is the copy baseline.</p>';
+    return;
+  }
+  const items = metrics.stages.map((st) => `<li data-stage="${esc(st.name)}"><b>${esc(st.name)}</b>
+      ${st.framesChanged === null ? '' : `<span data-frames-changed="${st.framesChanged}">${formatNumber(st.framesChanged)} frames changed</span>`}
+      ${st.seconds === null ? '' : `<small>${formatNumber(st.seconds)} s</small>`}
+      ${st.figures.length ? `<details><summary>figures</summary><table>${st.figures.map(([k, v]) => `<tr><th scope="row">${esc(k.replaceAll('_', ' '))}</th><td>${typeof v === 'boolean' ? (v ? 'yes' : 'no') : formatNumber(v)}</td></tr>`).join('')}</table></details>` : ''}</li>`).join('');
+  el.innerHTML = `<h2>Stages</h2><ul class="stage-report-list">${items}</ul>`;
 }
 
 function renderNotes(el, job, metrics) {
