@@ -61,11 +61,11 @@ class TripleSet:
 
 
 def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Tensor, frames: Tensor,
-                      exempt: Tensor, allowed: Tensor, slack: float, clearance: float,
+                      exempt: Tensor, allowed: Tensor, slack: float | Tensor, clearance: float,
                       contact_tolerance: float, only_penetrating: bool = False) -> TripleSet:  # fmt: skip
     """Triples for point vertices ``points (P,)`` posed ``(Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``
     at clip frames ``frames (Fa,)``: every allowed segment whose grid box, grown by ``slack``, holds the point
-    and whose distance is below ``slack``. ``exempt (F, S, 6)``: segment-of-point x cluster pairs in contact
+    and whose distance is below ``slack`` (m, or ``(P,)`` per point). ``exempt (F, S, 6)``: segment-of-point x cluster pairs in contact
     per clip frame (their tolerance is ``contact_tolerance``). ``only_penetrating``: keep depths > 0 only."""
     parts = sdf.parts
     part = parts.vertex_part.index_select(0, points)  # (P,)
@@ -74,6 +74,7 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
     hi = lo + (sdf.size - 1).to(lo.dtype) * sdf.voxel[:, None]
     groups = []
     f_a, p_n = posed.shape[:2]
+    slack_p = torch.as_tensor(slack, dtype=posed.dtype).expand(p_n)
     with torch.no_grad():
         for j in range(parts.num_parts):
             if sdf.grids[j] is None:
@@ -85,14 +86,14 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
             r, t = seg_mats[:, j, :, :3], seg_mats[:, j, :, 3]  # (Fa, 3, 3), (Fa, 3)
             x = posed[:, p_idx]  # (Fa, n, 3)
             local = torch.einsum("fji,fnj->fni", r, x - t[:, None])
-            out = (local - local.clamp(lo[j] - slack, hi[j] + slack)).norm(dim=-1)
-            f_i, n_i = torch.nonzero(out <= 0.0, as_tuple=True)
+            out = (local - torch.maximum(torch.minimum(local, hi[j]), lo[j])).norm(dim=-1)
+            f_i, n_i = torch.nonzero(out <= slack_p[p_idx][None], as_tuple=True)
             if len(f_i) == 0:
                 continue
             d = segment_distance(sdf, j, local[f_i, n_i])
             pt = p_idx[n_i]
             rest = sdf.rest_depth[points[pt], j]
-            keep = (-d - rest > 0.0) if only_penetrating else d < slack
+            keep = (-d - rest > 0.0) if only_penetrating else d < slack_p[pt]
             f_i, pt, rest = f_i[keep], pt[keep], rest[keep]
             if len(f_i) == 0:
                 continue
@@ -103,19 +104,39 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
     return TripleSet(groups)
 
 
-def penetration_energy(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor, scale: float) -> Tensor:
-    """Sum over triples of ``weight * relu(depth - tolerance)^2`` in cm^2 at 1.80 m (a scalar)."""
-    total = posed.new_zeros(())
+def triple_depths(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor) -> list[Tensor]:
+    """Per group of ``triples``, the depth ``(N,)`` (m) of each triple's point in its segment beyond the
+    bind pose's (negative outside)."""
     p_n = posed.shape[1]
     flat = posed.reshape(-1, 3)
-    for j, f_i, pt, tol, weight, rest in triples.groups:
+    out = []
+    for j, f_i, pt, _tol, _weight, rest in triples.groups:
         x = flat.index_select(0, f_i * p_n + pt)
         r, t = seg_mats[:, j, :, :3].index_select(0, f_i), seg_mats[:, j, :, 3].index_select(0, f_i)
         local = torch.einsum("nji,nj->ni", r, x - t)
-        depth = -segment_distance(sdf, j, local) - rest
+        out.append(-segment_distance(sdf, j, local) - rest)
+    return out
+
+
+def penetration_energy(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor, scale: float) -> Tensor:
+    """Sum over triples of ``weight * relu(depth - tolerance)^2`` in cm^2 at 1.80 m (a scalar)."""
+    total = posed.new_zeros(())
+    for (_, _, _, tol, weight, _), depth in zip(triples.groups, triple_depths(sdf, triples, posed, seg_mats), strict=True):
         pen = (depth - tol).clamp_min(0.0) * (100.0 * scale)
         total = total + (weight * pen.pow(2)).sum()
     return total
+
+
+def near_triples(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor, within: float) -> TripleSet:
+    """The triples whose point is deeper than ``-within`` (m) at the given pose: the only ones whose
+    penetration term can become non-zero during the next few steps (no gradients)."""
+    groups = []
+    with torch.no_grad():
+        for g, depth in zip(triples.groups, triple_depths(sdf, triples, posed, seg_mats), strict=True):
+            keep = depth > -within
+            if bool(keep.any()):
+                groups.append((g[0], *(x[keep] for x in g[1:])))
+    return TripleSet(groups)  # type: ignore[arg-type]
 
 
 @dataclass
@@ -172,6 +193,8 @@ __all__ = [
     "candidate_triples",
     "instance_distance",
     "contact_energy",
+    "near_triples",
     "penetration_energy",
+    "triple_depths",
     "sentinel_vertices",
 ]

@@ -40,6 +40,7 @@ from retarget_core.refine.collision_energy import (
     candidate_triples,
     contact_energy,
     instance_distance,
+    near_triples,
     penetration_energy,
     sentinel_vertices,
 )
@@ -80,7 +81,8 @@ class CollisionParams:
     clearance_m: float = 0.001  # collisions are pushed this far outside the surface
     contact_tolerance_m: float = 0.002  # a hand may press this deep into the part it touches
     contact_reach_m: float = 0.15  # paper 1: a contact is pulled in only when it starts within 15 cm
-    contact_ok_m: float = 0.01  # a contact closer than this is kept (never-worse check)
+    contact_ok_m: float = 0.015  # a contact closer than this counts as kept by the never-worse check (the
+    # source-contact distance of ACCEPTANCE.md; a contact is judged kept below 2.5 cm)
     penetration_tolerance_m: float = 0.003  # as the metrics: deeper vertices mark a frame as penetrating
     worse_volume_fraction: float = 0.02  # a frame is worse when its volume grows by more than 2 % ...
     worse_volume_m3: float = 2e-8  # ... and by more than this (at 1.80 m; a few mm^3 is noise)
@@ -89,9 +91,12 @@ class CollisionParams:
     fallback_ramp: int = 8  # frames over which a worse span blends back to the input
     fallback_rounds: int = 3
     finish_lr_fraction: float = 0.3  # the finishing pass starts from a converged pose: smaller steps
+    recull_every: int = 8  # steps between re-selections of the triples near their segment
+    recull_within_m: float = 0.02  # triples farther outside than this cannot penetrate within 8 steps
+    finish_slack_m: float = 0.01  # the finishing pass's extra vertices: segments within 1 cm on the input
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0
-    w_contact: float = 2.0
+    w_contact: float = 5.0
     w_identity: float = 2.0  # per rad^2 per knot, times the joint's stiffness
     w_smooth: float = 20.0  # per rad^2 of the knots' second difference
     joint_stiffness: dict[str, float] = field(default_factory=lambda: dict(JOINT_STIFFNESS))
@@ -185,14 +190,14 @@ def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, p
 
 
 def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: ContactInstances, exempt: Tensor,
-                 params: CollisionParams, scale: float) -> _Terms:  # fmt: skip
-    """Poser, candidate triples and contact targets of a point set (chosen on the input pose)."""
+                 params: CollisionParams, scale: float, slack: float | Tensor) -> _Terms:  # fmt: skip
+    """Poser, candidate triples (segments within ``slack`` (m, or per point) on the input pose) and contact
+    targets of a point set."""
     poser = PointPoser(ctx.target, points, ctx.parts.joints)
     with torch.no_grad():
         posed, seg_mats, _ = poser(prob.local_in, prob.trans)
     triples = candidate_triples(ctx.sdf, points, posed, seg_mats, prob.frames, exempt, ctx.sdf.allowed,
-                                params.candidate_slack_m / scale, params.clearance_m / scale,
-                                params.contact_tolerance_m / scale)  # fmt: skip
+                                slack, params.clearance_m / scale, params.contact_tolerance_m / scale)  # fmt: skip
     targets = _contact_targets(ctx, contacts, prob.frames, points)
     if targets.count:
         with torch.no_grad():
@@ -222,7 +227,12 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
     knots.requires_grad_(True)
     opt = torch.optim.Adam([knots], lr=lr)
     last: dict[str, Tensor] = {}
+    full = terms.triples
     for it in range(steps):
+        if it % params.recull_every == 0:
+            with torch.no_grad():
+                posed, seg_mats, _ = terms.poser(prob.local(knots), prob.trans)
+            terms = _Terms(terms.poser, near_triples(ctx.sdf, full, posed, seg_mats, params.recull_within_m / scale), terms.targets)
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
         for g in opt.param_groups:
@@ -297,7 +307,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
         contact_pts = ctx.constraints.i.unique() if ctx.constraints.count else torch.zeros(0, dtype=torch.long)
         points = torch.unique(torch.cat([sentinels, contact_pts]))
-        terms_in = _build_terms(ctx, prob, points, contacts, exempt, params, scale)
+        terms_in = _build_terms(ctx, prob, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
@@ -312,8 +322,11 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         extra = torch.nonzero(deep.any(0)).flatten()
         if params.finish_iterations and len(extra):
             t = time.perf_counter()
+            is_sentinel = torch.zeros(ch.num_vertices, dtype=torch.bool)
+            is_sentinel[points] = True
             points = torch.unique(torch.cat([points, extra]))
-            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale)
+            slack = torch.where(is_sentinel[points], params.candidate_slack_m / scale, params.finish_slack_m / scale)
+            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack)
             report["finish_points"] = int(len(points))
             report["finish_triples"] = terms_fin.triples.count
             terms = _optimise(ctx, prob, terms_fin, knots, params.finish_iterations,
