@@ -26,7 +26,7 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("contacts", "Contacts", "hand self-contacts and planted feet found on the source, carried to the target"),
     StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network", available=False),
     StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states", available=False),
-    StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept", available=False),
+    StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept"),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK", available=False),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

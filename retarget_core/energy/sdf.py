@@ -345,6 +345,12 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
     return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
 
 
+def segment_distance(sdf: PartSDF, seg: int, points: Tensor) -> Tensor:
+    """Blended signed distance ``(N,)`` of points ``(N, 3)`` given in segment ``seg``'s rest frame (posed points
+    taken back by the inverse of the segment's skinning transform); differentiable in the points."""
+    return _sample_grid(sdf, seg, points)
+
+
 def _pair_values(table: Tensor, samples: PairSamples) -> Tensor:
     """``table (V, S)`` at each sample's (vertex, part)."""
     return table.reshape(-1).index_select(0, samples.vertex * table.shape[1] + samples.part)
@@ -391,6 +397,7 @@ __all__ = [
     "effective_depth",
     "geodesic_to_parts",
     "sample_pairs",
+    "segment_distance",
     "segment_matrices",
     "vertex_areas",
     "vertex_depths",

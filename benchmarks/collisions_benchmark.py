@@ -1,0 +1,115 @@
+"""Collision stage benchmark: ms per frame of the stage on 300-frame clips (30 fps) x heavy bodies, and its effect
+measured by :mod:`retarget_core.metrics` (penetrating vertices %, frames whose deepest vertex is > 1 cm, contact
+distance, jerk), before (plain rotation copy) and after. One torch thread. Writes
+benchmarks/results/collisions_benchmark.json.
+
+    flock /tmp/heavy.lock env PYTHONPATH=$PWD .venv/bin/python benchmarks/collisions_benchmark.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from retarget_core.metrics.compute import ClipMeasures, compute_metrics
+from retarget_core.motion import Motion
+from retarget_core.refine.build_context import context_from_files
+from retarget_core.refine.collisions import resolve
+from retarget_core.refine.context import RefineContext
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+DEFAULT_CLIPS = ("002_05", "002_08", "001_01", "005_12", "006_12")
+DEFAULT_BODIES = ("mh_male_bulky", "mh_male_muscular", "mh_female_average")
+
+
+def _jerk(m: Motion, height: float) -> float:
+    """Mean third difference of joint positions per height (per frame^3)."""
+    _, gpos = m.global_transforms()
+    return float((gpos[3:] - 3 * gpos[2:-1] + 3 * gpos[1:-2] - gpos[:-3]).norm(dim=-1).mean()) / height
+
+
+def _figures(ctx: RefineContext, m: Motion, original: ClipMeasures | None) -> tuple[dict[str, Any], ClipMeasures]:
+    metrics, measures = compute_metrics(ctx.target, ctx.target_mapping, ctx.sdf, m, contacts=ctx.constraints,
+                                        original=original, source_feet=ctx.feet)  # fmt: skip
+    s = metrics.summary
+    deep = measures.vertex_depth.amax(-1) * measures.scale_to_180 > 0.01
+    return {
+        "penetrating_vertices_percent": s.penetrating_vertices_percent,
+        "frames_deeper_than_1cm_percent": round(float(deep.float().mean() * 100.0), 2),
+        "max_depth_cm_at_180": s.penetration_max_depth.value_at_180,
+        "contact_distance_mean_cm_at_180": s.contact_distance_mean.value_at_180,
+        "contact_satisfied_percent": s.contact_satisfied_percent,
+        "m_c": s.m_c.value_at_180,
+        "mpjpe_cm_at_180": s.mpjpe.value_at_180,
+        "jerk_per_height": _jerk(m, ctx.target.height),
+    }, measures
+
+
+def bench_one(clip: str, body: str, frames: int, fps: float) -> dict[str, Any]:
+    ctx = context_from_files(SHARED / "motions/cmu" / f"{clip}.bvh", SHARED / "characters" / f"{body}.glb", 0, frames, fps)
+    t = time.perf_counter()
+    out = resolve(ctx, ctx.before)
+    seconds = time.perf_counter() - t
+    before, measures = _figures(ctx, ctx.before, None)
+    after, _ = _figures(ctx, out.motion, measures)
+    src_jerk = _jerk(ctx.source_view, ctx.source_body.height)
+    row = {
+        "clip": clip, "body": body, "frames": ctx.num_frames, "contact_constraints": ctx.constraints.count,
+        "stage_seconds": round(seconds, 3), "ms_per_frame": round(1000.0 * seconds / ctx.num_frames, 2),
+        "before": before, "after": after,
+        "pen_ratio": _ratio(after["penetrating_vertices_percent"], before["penetrating_vertices_percent"]),
+        "deep_frames_ratio": _ratio(after["frames_deeper_than_1cm_percent"], before["frames_deeper_than_1cm_percent"]),
+        "jerk_ratio_vs_before": _ratio(after["jerk_per_height"], before["jerk_per_height"]),
+        "jerk_ratio_vs_source": _ratio(after["jerk_per_height"], src_jerk),
+        "stage_report": out.report,
+    }  # fmt: skip
+    return row
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or b == 0:
+        return None
+    return round(a / b, 4)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--clips", nargs="*", default=list(DEFAULT_CLIPS))
+    ap.add_argument("--bodies", nargs="*", default=list(DEFAULT_BODIES))
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/collisions_benchmark.json")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    for body in args.bodies:
+        for clip in args.clips:
+            row = bench_one(clip, body, args.frames, args.fps)
+            rows.append(row)
+            b, a = row["before"], row["after"]
+            print(f"{clip} {body}: {row['ms_per_frame']:.1f} ms/frame | pen %v {b['penetrating_vertices_percent']:.3f} -> "
+                  f"{a['penetrating_vertices_percent']:.3f} | >1cm {b['frames_deeper_than_1cm_percent']:.1f}% -> "
+                  f"{a['frames_deeper_than_1cm_percent']:.1f}% | contact cm {b['contact_distance_mean_cm_at_180']} -> "
+                  f"{a['contact_distance_mean_cm_at_180']} | jerk x{row['jerk_ratio_vs_before']} (vs source "
+                  f"x{row['jerk_ratio_vs_source']})", flush=True)  # fmt: skip
+    summary = {
+        "rows": len(rows),
+        "ms_per_frame_mean": round(sum(r["ms_per_frame"] for r in rows) / len(rows), 2),
+        "pen_ratio_max": max((r["pen_ratio"] for r in rows if r["pen_ratio"] is not None), default=None),
+        "deep_frames_ratio_max": max((r["deep_frames_ratio"] for r in rows if r["deep_frames_ratio"] is not None), default=None),
+        "jerk_ratio_vs_before_max": max((r["jerk_ratio_vs_before"] for r in rows if r["jerk_ratio_vs_before"] is not None), default=None),
+        "torch_threads": torch.get_num_threads(),
+    }  # fmt: skip
+    print(json.dumps(summary))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"summary": summary, "results": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""All-vertex penetration and contact figures per frame: what the collision stage's broad phase, finishing pass
+and never-worse check read (the same blended-SDF depths as :mod:`retarget_core.metrics`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from retarget_core import kinematics
+from retarget_core.body_parts import CLUSTERS
+from retarget_core.character import Character
+from retarget_core.contacts.correspondence import ContactConstraints
+from retarget_core.energy.sdf import PartSDF, sample_pairs, segment_matrices, vertex_depths
+
+
+@dataclass
+class ContactInstances:
+    """Distinct (frame, hand segment, touched cluster) contacts of the target: ``frame``, ``hand``,
+    ``cluster`` ``(N,)`` (hand: segment index of the target's parts; cluster: index into :data:`CLUSTERS`)."""
+
+    frame: Tensor
+    hand: Tensor
+    cluster: Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.frame.shape[0])
+
+
+def contact_instances(sdf: PartSDF, constraints: ContactConstraints) -> ContactInstances:
+    """The contacts of ``constraints`` as distinct (frame, hand, cluster), by part name on the target."""
+    parts = sdf.parts
+    rows: set[tuple[int, int, int]] = set()
+    for f, h, o in zip(constraints.frame.tolist(), constraints.hand.tolist(), constraints.other.tolist(), strict=True):
+        hs = parts.find(constraints.part_names[h])
+        os_ = parts.find(constraints.part_names[o])
+        if hs is None or os_ is None:
+            continue
+        rows.add((f, hs, parts.cluster[os_]))
+    data = torch.tensor(sorted(rows), dtype=torch.long).reshape(-1, 3)
+    return ContactInstances(data[:, 0], data[:, 1], data[:, 2])
+
+
+@dataclass
+class FrameCheck:
+    """Per checked frame ``(n,)``: penetration volume (m^3, sum of vertex area x depth), deepest vertex (m),
+    penetrating vertex count (depth above the tolerance); ``depth (n, V)`` every vertex's weighted depth;
+    ``contact (N,)`` each contact instance's hand-to-part distance (m, 0 inside, the grid margin when farther;
+    NaN for instances outside the checked frames)."""
+
+    frames: Tensor
+    volume: Tensor
+    max_depth: Tensor
+    count: Tensor
+    depth: Tensor
+    contact: Tensor
+
+
+def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translations: Tensor, frames: Tensor,
+                 contacts: ContactInstances, tolerance: float, chunk: int = 64) -> FrameCheck:  # fmt: skip
+    """Pose all vertices at clip ``frames (n,)`` of the local ``rotations (F, J, 4)`` / ``translations (F, J, 3)``
+    and measure them (no gradients)."""
+    parts = sdf.parts
+    cluster = torch.tensor(parts.cluster, dtype=torch.long)
+    n = len(frames)
+    v_n = character.num_vertices
+    vol, mx, cnt = torch.zeros(n), torch.zeros(n), torch.zeros(n)
+    depth = torch.zeros(n, v_n)
+    contact = torch.full((contacts.count,), float("nan"))
+    pos_of = torch.full((rotations.shape[0],), -1, dtype=torch.long)
+    pos_of[frames] = torch.arange(n)
+    c_pos = pos_of[contacts.frame] if contacts.count else torch.zeros(0, dtype=torch.long)
+    area = sdf.vertex_area
+    with torch.no_grad():
+        for s in range(0, n, chunk):
+            fr = frames[s : s + chunk]
+            grot, gpos = kinematics.forward_kinematics(character.skeleton.parents, rotations[fr], translations[fr])
+            verts = character.pose_vertices(grot, gpos)
+            mats = segment_matrices(character, parts, grot, gpos)
+            samples = sample_pairs(sdf, verts, mats)
+            d = vertex_depths(sdf, samples, len(fr))
+            depth[s : s + len(fr)] = d
+            vol[s : s + len(fr)] = (d * area).sum(-1)
+            mx[s : s + len(fr)] = d.amax(-1)
+            cnt[s : s + len(fr)] = (d > tolerance).sum(-1).float()
+            if contacts.count:
+                sel = torch.nonzero((c_pos >= s) & (c_pos < s + len(fr))).flatten()
+                if len(sel):
+                    contact[sel] = _contact_distance(sdf, samples, contacts, sel, c_pos[sel] - s, cluster)
+    return FrameCheck(frames, vol, mx, cnt, depth, contact)
+
+
+def _contact_distance(sdf: PartSDF, samples, contacts: ContactInstances, sel: Tensor, local_frame: Tensor,  # type: ignore[no-untyped-def]
+                      cluster: Tensor) -> Tensor:  # fmt: skip
+    """Hand-to-cluster distance of contact instances ``sel`` (local frame indices into the samples' chunk)."""
+    parts = sdf.parts
+    s_n, c_n = parts.num_parts, len(CLUSTERS)
+    f_n = int(local_frame.max()) + 1
+    vpart = parts.vertex_part.index_select(0, samples.vertex)
+    key = (samples.frame * s_n + vpart) * c_n + cluster.index_select(0, samples.part)
+    table = samples.distance.new_full((max(f_n, int(samples.frame.max()) + 1 if len(samples.frame) else 1) * s_n * c_n,), sdf.margin)
+    table = table.scatter_reduce(0, key, samples.distance.clamp(0.0, sdf.margin), "amin", include_self=True)
+    q = (local_frame * s_n + contacts.hand[sel]) * c_n + contacts.cluster[sel]
+    return table.index_select(0, q)
+
+
+__all__ = ["ContactInstances", "FrameCheck", "check_frames", "contact_instances"]

@@ -1,0 +1,66 @@
+"""Forward kinematics and skinning of a subset of vertices in rotation-matrix form, for the collision stage's
+inner loop (a few small batched matrix products per joint instead of quaternion algebra; the same result as
+:mod:`retarget_core.kinematics` up to float rounding)."""
+
+from __future__ import annotations
+
+import roma
+import torch
+from torch import Tensor
+
+from retarget_core.character import Character
+
+
+def rotvec_to_matrix(r: Tensor) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)`` (Rodrigues; smooth at zero:
+    ``(1 - cos t) / t^2`` is written ``sinc(t / 2)^2 / 2``)."""
+    theta = (r.pow(2).sum(-1, keepdim=True) + 1e-12).sqrt()[..., None]  # (..., 1, 1)
+    zero = torch.zeros_like(r[..., 0])
+    k = torch.stack([zero, -r[..., 2], r[..., 1], r[..., 2], zero, -r[..., 0], -r[..., 1], r[..., 0], zero], dim=-1)
+    k = k.reshape(*r.shape[:-1], 3, 3)
+    half = 0.5 * theta
+    a = torch.sin(theta) / theta
+    b = 0.5 * (torch.sin(half) / half).pow(2)
+    eye = torch.eye(3, dtype=r.dtype).expand_as(k)
+    return eye + a * k + b * (k @ k)
+
+
+class PointPoser:
+    """Poses ``points (P,)`` of ``character`` from local rotation matrices; ``seg_joints (S,)`` the joints
+    whose skinning transforms are returned as segment transforms."""
+
+    def __init__(self, character: Character, points: Tensor, seg_joints: list[int]) -> None:
+        sk = character.skeleton
+        self.parents = sk.parents
+        rest_rot, rest_pos = sk.rest_global()
+        self.rest_rot_t = roma.unitquat_to_rotmat(rest_rot.float()).transpose(-1, -2)  # (J, 3, 3)
+        self.rest_pos = rest_pos.float()
+        self.points = points
+        self.rest = character.vertices.float().index_select(0, points)  # (P, 3)
+        self.weights = character.dense_weights().float().index_select(0, points)  # (P, J)
+        self.seg_joints = torch.tensor(seg_joints, dtype=torch.long)
+
+    def __call__(self, local_rot: Tensor, local_trans: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """From local rotation matrices ``(F, J, 3, 3)`` and translations ``(F, J, 3)``: posed points
+        ``(F, P, 3)``, segment transforms ``(F, S, 3, 4)`` (rest world -> posed world), joint positions ``(F, J, 3)``."""
+        g_rot: list[Tensor] = []
+        g_pos: list[Tensor] = []
+        for j, p in enumerate(self.parents):
+            if p < 0:
+                g_rot.append(local_rot[:, j])
+                g_pos.append(local_trans[:, j])
+            else:
+                g_rot.append(g_rot[p] @ local_rot[:, j])
+                g_pos.append(g_pos[p] + (g_rot[p] @ local_trans[:, j, :, None])[..., 0])
+        grot = torch.stack(g_rot, dim=1)  # (F, J, 3, 3)
+        gpos = torch.stack(g_pos, dim=1)  # (F, J, 3)
+        r = grot @ self.rest_rot_t  # (F, J, 3, 3)
+        t = gpos - (r @ self.rest_pos[..., None])[..., 0]
+        mats = torch.cat([r, t[..., None]], dim=-1)  # (F, J, 3, 4)
+        f_n, j_n = mats.shape[:2]
+        blended = torch.matmul(self.weights, mats.reshape(f_n, j_n, 12)).reshape(f_n, -1, 3, 4)  # (F, P, 3, 4)
+        posed = (blended[..., :3] * self.rest[None, :, None, :]).sum(-1) + blended[..., 3]
+        return posed, mats.index_select(1, self.seg_joints), gpos
+
+
+__all__ = ["PointPoser", "rotvec_to_matrix"]

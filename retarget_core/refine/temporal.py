@@ -1,0 +1,56 @@
+"""Residuals that are smooth in time by construction: a uniform cubic B-spline over knots every few frames.
+
+A residual ``r(t) = sum_k c_k beta3(t / K - k)`` (``beta3`` the centred cubic B-spline, support [-2, 2]) is C2
+in time, so its third difference (jerk) is bounded by the knots' differences over ``K^3``: no per-frame jitter
+can appear, whatever the optimiser does to the knots.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def cubic_bspline(x: Tensor) -> Tensor:
+    """The centred uniform cubic B-spline ``beta3(x)`` elementwise (support ``|x| < 2``, partition of unity)."""
+    a = x.abs()
+    inner = 2.0 / 3.0 - a.pow(2) + 0.5 * a.pow(3)
+    outer = (2.0 - a).clamp_min(0.0).pow(3) / 6.0
+    return torch.where(a < 1.0, inner, outer)
+
+
+def knot_count(frames: int, spacing: int) -> int:
+    """Knots ``k = -1 .. ceil((F - 1) / K) + 1`` cover every frame with a full set of four basis functions."""
+    return int(math.ceil(max(frames - 1, 0) / spacing)) + 3
+
+
+def bspline_basis(frames: int, spacing: int, dtype: torch.dtype = torch.float32) -> Tensor:
+    """``(F, N)`` basis matrix: row t holds ``beta3(t / K - k)`` for knots ``k = -1 ..`` (see :func:`knot_count`)."""
+    n = knot_count(frames, spacing)
+    t = torch.arange(frames, dtype=dtype)[:, None] / spacing
+    k = torch.arange(n, dtype=dtype)[None, :] - 1.0
+    return cubic_bspline(t - k)
+
+
+def smoothstep(x: Tensor) -> Tensor:
+    """``3x^2 - 2x^3`` on ``x`` clamped to [0, 1] (C1 ramp)."""
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def fallback_weights(bad: Tensor, ramp: int) -> Tensor:
+    """``(F,)`` weights in 0..1: 0 on frames ``bad (F,)`` and rising smoothly back to 1 over ``ramp`` frames
+    around them (a span where a change made things worse returns smoothly to the input)."""
+    f_n = bad.shape[0]
+    w = torch.ones(f_n)
+    idx = torch.nonzero(bad).flatten()
+    if len(idx) == 0:
+        return w
+    t = torch.arange(f_n, dtype=torch.float32)
+    dist = (t[:, None] - idx[None, :].float()).abs().amin(dim=1)
+    return smoothstep(dist / max(ramp, 1))
+
+
+__all__ = ["bspline_basis", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep"]

@@ -1,0 +1,222 @@
+"""The collision stage on built cases: the cluster collision matrix reads a known depth, the resolver separates
+two pushed-in parts, brings a hand sunk into the belly to its surface, leaves a clean clip unchanged, and
+stays smooth on a real clip."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import roma
+import torch
+import trimesh
+
+from retarget_core import kinematics
+from retarget_core import rotations as rot
+from retarget_core.body_parts import CLUSTERS, body_parts, mapping_by_name
+from retarget_core.character import Character
+from retarget_core.contacts.correspondence import ContactConstraints, no_contacts
+from retarget_core.contacts.foot_contact import FootContacts
+from retarget_core.contacts.self_contact import SelfContacts
+from retarget_core.energy.sdf import build_part_sdf, segment_matrices
+from retarget_core.motion import Motion
+from retarget_core.refine.collision_check import check_frames, contact_instances
+from retarget_core.refine.collision_matrix import cluster_collision_matrix
+from retarget_core.refine.collisions import resolve
+from retarget_core.refine.context import RefineContext
+from retarget_core.skeleton import Skeleton
+
+BIG, SMALL = 0.4, 0.1  # the torso box (skinned to Hips) and the hand box (skinned to LeftHand)
+ARM_JOINT = (0.5, 0.45, 0.0)  # world position of LeftArm: the hand box swings on a 0.4 m radius around it
+HAND_X = 0.1  # the hand box's centre above the torso box
+
+
+def _box(extent: float, centre: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    m = trimesh.creation.box(extents=(extent, extent, extent))
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    for _ in range(2):
+        v, f = trimesh.remesh.subdivide(v, f)
+    return v + np.asarray(centre), f
+
+
+def _arm_boxes() -> Character:
+    """Hips (torso box) -> Spine -> LeftArm (no vertices) -> LeftHand (hand box, at rest beside the torso)."""
+    vb, fb = _box(BIG, (0.0, BIG / 2, 0.0))
+    rest_hand = (ARM_JOINT[0] + 0.4, ARM_JOINT[1], 0.0)
+    va, fa = _box(SMALL, rest_hand)
+    verts = np.concatenate([vb, va])
+    faces = np.concatenate([fb, fa + len(vb)])
+    joints = torch.zeros(len(verts), 1, dtype=torch.long)
+    joints[len(vb) :] = 3
+    world = torch.tensor([[0.0, BIG / 2, 0.0], [0.0, BIG / 2 + 0.1, 0.0], list(ARM_JOINT), list(rest_hand)])
+    offsets = torch.cat([world[:1], world[1:] - world[:-1]])
+    sk = Skeleton(["Hips", "Spine", "LeftArm", "LeftHand"], [-1, 0, 1, 2], offsets, rot.identity(4))
+    return Character("arm_boxes", sk, torch.tensor(verts, dtype=torch.float32), torch.tensor(faces), joints, torch.ones(len(verts), 1))
+
+
+def _pushed_in(ch: Character, depth: float, frames: int) -> Motion:
+    """The hand box's bottom ``depth`` below the torso's top face (the arm turned down about z)."""
+    dx, dy = HAND_X - ARM_JOINT[0], (BIG + SMALL / 2 - depth) - ARM_JOINT[1]
+    angle = float(torch.atan2(torch.tensor(dy), torch.tensor(dx)))  # the rest hand points along +x
+    r = ch.skeleton.rest_rotations.expand(frames, -1, -1).clone()
+    r[:, 2] = roma.rotvec_to_unitquat(torch.tensor([0.0, 0.0, angle]))
+    r[:, 3] = roma.rotvec_to_unitquat(torch.tensor([0.0, 0.0, -angle]))  # the hand box stays axis-aligned
+    t = ch.skeleton.rest_translations.expand(frames, -1, -1).clone()
+    t[:, 3] = torch.tensor([float(np.hypot(dx, dy)), 0.0, 0.0])
+    return Motion(ch.skeleton, 30.0, r, t, "pushed_in")
+
+
+def _context(ch: Character, before: Motion, constraints: ContactConstraints | None = None) -> RefineContext:
+    mapping = mapping_by_name(ch.skeleton.names)
+    parts = body_parts(ch, mapping)
+    f_n = before.num_frames
+    e = torch.zeros(0, dtype=torch.long)
+    contacts = SelfContacts(f_n, parts.names, e, e, e, torch.zeros(0, 3, 2, dtype=torch.long), torch.zeros(0, 3),
+                            torch.zeros(0, dtype=torch.bool), torch.zeros(0))  # fmt: skip
+    return RefineContext(
+        target=ch, target_mapping=mapping, parts=parts, sdf=_sdf(ch, parts), source_body=ch, source_mapping=mapping,
+        source_view=before, self_contacts=contacts, constraints=constraints or no_contacts(f_n),
+        feet=FootContacts(torch.zeros(f_n, 4, dtype=torch.bool), [-1] * 4), before=before,
+    )  # fmt: skip
+
+
+_SDFS: dict[str, object] = {}
+
+
+def _sdf(ch, parts):  # type: ignore[no-untyped-def]
+    if ch.name not in _SDFS:
+        _SDFS[ch.name] = build_part_sdf(ch, parts)
+    return _SDFS[ch.name]
+
+
+def _matrix(ctx: RefineContext, m: Motion) -> torch.Tensor:
+    grot, gpos = m.global_transforms()
+    with torch.no_grad():
+        posed = ctx.target.pose_vertices(grot, gpos)
+        return cluster_collision_matrix(ctx.sdf, posed, segment_matrices(ctx.target, ctx.parts, grot, gpos))
+
+
+@pytest.mark.parametrize("depth", [0.02, 0.04])
+def test_cluster_matrix_reads_the_depth_and_resolution_separates(depth: float) -> None:
+    ch = _arm_boxes()
+    before = _pushed_in(ch, depth, frames=12)
+    ctx = _context(ch, before)
+    arm, torso = CLUSTERS.index("left_arm"), CLUSTERS.index("torso")
+    m = _matrix(ctx, before)
+    assert m.shape == (12, 6, 6)
+    assert torch.allclose(m[:, arm, torso], torch.full((12,), depth), atol=0.004), m[0]
+    off = m.clone()
+    off[:, arm, torso] = off[:, torso, arm] = 0
+    assert float(off.max()) == 0.0  # nothing else collides
+    out = resolve(ctx, before)
+    after = _matrix(ctx, out.motion)
+    assert float(after[:, arm, torso].max()) < 0.003, after[:, arm, torso]
+    assert out.report["frames_changed"] == 12
+    assert out.report["penetration_after"]["max_depth_cm"] < 0.3 * out.report["penetration_before"]["max_depth_cm"]
+
+
+def test_gap_reads_zero() -> None:
+    ch = _arm_boxes()
+    ctx = _context(ch, _pushed_in(ch, -0.02, frames=2))
+    assert float(_matrix(ctx, ctx.before).max()) == 0.0
+
+
+@pytest.fixture(scope="module")
+def bulky() -> Character:
+    from retarget_core.bodies.presets import load_preset
+
+    return load_preset("male_bulky")
+
+
+def _hand_in_belly(ch: Character, depth: float, frames: int) -> tuple[Motion, int, int]:
+    """The left palm pressed ``depth`` into the front of the belly (arm rotations optimised); returns the
+    motion, the belly vertex and the hand vertex nearest to it."""
+    mapping = mapping_by_name(ch.skeleton.names)
+    parts = body_parts(ch, mapping)
+    sk = ch.skeleton
+    belly = parts.part_vertices(parts.index("Spine"))
+    bv = ch.vertices[belly]
+    score = bv[:, 2] - 2.0 * (bv[:, 1] - bv[:, 1].median()).abs() - 2.0 * (bv[:, 0] - 0.08).abs()
+    belly_vertex = int(belly[int(score.argmax())])
+    target = ch.vertices[belly_vertex] - depth * ch.vertex_normals()[belly_vertex]
+    chain = [mapping.joints[n] for n in ("LeftArm", "LeftForeArm", "LeftHand")]
+    hand = parts.group("LeftHand")[::3]
+    params = torch.zeros(len(chain), 3, requires_grad=True)
+    opt = torch.optim.Adam([params], lr=0.05)
+    rest_rot, rest_pos = sk.rest_global()
+    dense = ch.dense_weights()[hand]
+
+    def local() -> torch.Tensor:
+        r = sk.rest_rotations.clone()
+        for k, j in enumerate(chain):
+            r[j] = rot.mul(sk.rest_rotations[j], roma.rotvec_to_unitquat(params[k]))
+        return r
+
+    for _ in range(150):
+        grot, gpos = kinematics.forward_kinematics(sk.parents, local(), sk.rest_translations)
+        x = kinematics.linear_blend_skinning(ch.vertices[hand], dense, kinematics.skinning_matrices(rest_rot, rest_pos, grot, gpos))
+        d = (x - target).norm(dim=-1)
+        loss = d.min() ** 2 + 1e-3 * (x.mean(0) - target).norm() ** 2 + 1e-4 * params.pow(2).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        r = local()
+        grot, gpos = kinematics.forward_kinematics(sk.parents, r, sk.rest_translations)
+        x = kinematics.linear_blend_skinning(ch.vertices[hand], dense, kinematics.skinning_matrices(rest_rot, rest_pos, grot, gpos))
+    hand_vertex = int(hand[int((x - target).norm(dim=-1).argmin())])
+    motion = Motion(sk, 30.0, r.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone(), "belly")
+    return motion, belly_vertex, hand_vertex
+
+
+def test_hand_sunk_into_the_belly_ends_on_its_surface(bulky: Character) -> None:
+    frames = 8
+    before, belly_vertex, hand_vertex = _hand_in_belly(bulky, 0.03, frames)
+    parts = body_parts(bulky, mapping_by_name(bulky.skeleton.names))
+    other = int(parts.vertex_part[belly_vertex])
+    idx = torch.arange(frames)
+    constraints = ContactConstraints(frames, idx, torch.full((frames,), hand_vertex), torch.full((frames,), belly_vertex),
+                                     torch.full((frames,), parts.index("LeftHand")), torch.full((frames,), other), parts.names)  # fmt: skip
+    ctx = _context(bulky, before, constraints)
+    s = ctx.sdf.scale_to_180
+    hand = parts.part_vertices(parts.index("LeftHand"))
+    contacts = contact_instances(ctx.sdf, constraints)
+
+    def measure(m: Motion):  # type: ignore[no-untyped-def]
+        c = check_frames(bulky, ctx.sdf, m.rotations, m.translations, idx, contacts, 0.003 / s)
+        return float(c.depth[:, hand].max()) * s, float(c.contact.max()) * s
+
+    depth_before, _ = measure(before)
+    assert depth_before > 0.02  # the built case: the hand is deep in the belly
+    out = resolve(ctx, before)
+    depth_after, distance_after = measure(out.motion)
+    assert depth_after < 0.01, out.report
+    assert distance_after < 0.01, out.report  # on the surface, not pushed away
+    assert out.report["contacts"]["kept_after"] == 1.0
+
+
+def test_rest_pose_comes_out_unchanged(bulky: Character) -> None:
+    sk = bulky.skeleton
+    before = Motion(sk, 30.0, sk.rest_rotations.expand(6, -1, -1).clone(), sk.rest_translations.expand(6, -1, -1).clone())
+    out = resolve(_context(bulky, before), before)
+    assert out.report["frames_changed"] == 0
+    assert torch.equal(out.motion.rotations, before.rotations)
+    assert torch.equal(out.motion.translations, before.translations)
+
+
+def _jerk(m: Motion) -> float:
+    _, gpos = m.global_transforms()
+    return float((gpos[3:] - 3 * gpos[2:-1] + 3 * gpos[1:-2] - gpos[:-3]).norm(dim=-1).mean())
+
+
+@pytest.mark.slow
+def test_real_clip_is_smooth_and_less_penetrating(shared_data: Path) -> None:
+    from retarget_core.refine.build_context import context_from_files
+
+    ctx = context_from_files(shared_data / "motions/cmu/002_05.bvh", shared_data / "characters/mh_male_bulky.glb", 0, 60, fps=30)
+    out = resolve(ctx, ctx.before)
+    r = out.report
+    assert r["frames_changed"] > 0
+    assert r["penetration_after"]["penetrating_vertices_percent"] < 0.5 * r["penetration_before"]["penetrating_vertices_percent"]
+    assert _jerk(out.motion) <= 1.1 * _jerk(ctx.before)
