@@ -30,6 +30,7 @@ from retarget_core.measure import SourceContactResult, carry_contacts, detect_so
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.normalize import NormalizationReport
 from retarget_core.options import RetargetOptions
+from retarget_core.placement import place_on_floor, planted_frames
 from retarget_core.refine import RefineContext, refinement_stages, resolve_device
 from retarget_core.resample import resample, select_frames
 from retarget_core.retargeted import Prepared, Retargeted
@@ -92,16 +93,16 @@ def source_body(inputs: JobInputs, source: LoadedMotion) -> LoadedCharacter:
     return LoadedCharacter(body, mapping, report, "builtin", report.notes)
 
 
-def prepare_source(inputs: JobInputs, max_frames: int | None = None) -> LoadedMotion:
-    """Read the motion and apply the options' frame range, then their frame rate, then ``max_frames`` (the
-    first frames after resampling; the evaluation uses it)."""
+def prepare_source(inputs: JobInputs, max_frames: int | None = None, skip_frames: int = 0) -> LoadedMotion:
+    """Read the motion and apply the options' frame range, then their frame rate, then the window of
+    ``max_frames`` frames from ``skip_frames`` on after resampling (the evaluation and scripts use it)."""
     opts = inputs.options
     loaded = load_motion(inputs.motion_path, clip=opts.clip, fps=opts.fps, joint_map_override=opts.joint_map_override)
     motion = select_frames(loaded.motion, opts.frame_start, opts.frame_end)
     if opts.fps is not None:
         motion = resample(motion, opts.fps)
-    if max_frames is not None:
-        motion = motion.slice(0, max_frames)
+    if max_frames is not None or skip_frames:
+        motion = select_frames(motion, skip_frames, None if max_frames is None else skip_frames + max_frames)
     loaded.motion = motion
     return loaded
 
@@ -114,12 +115,15 @@ def _no_self_contacts(found: SourceContactResult) -> SourceContactResult:
     return SourceContactResult(replace(sc, **per_contact), found.feet, found.body_name)
 
 
-def prepare(inputs: JobInputs, clock: StageClock | None = None, *, max_frames: int | None = None) -> Prepared:
-    """Read, find the contacts on the source and make the copy baseline ("before") on the target."""
+def prepare(
+    inputs: JobInputs, clock: StageClock | None = None, *, max_frames: int | None = None, skip_frames: int = 0
+) -> Prepared:
+    """Read, find the contacts on the source and make the copy baseline ("before") on the target
+    (``max_frames``/``skip_frames``: see :func:`prepare_source`)."""
     clock = clock or StageClock()
     opts = inputs.options
     with clock.stage("read"):
-        source = prepare_source(inputs, max_frames)
+        source = prepare_source(inputs, max_frames, skip_frames)
         target = load_character(inputs.target, joint_map_override=opts.target_joint_map_override)
         body = source_body(inputs, source)
     with clock.stage("copy"):
@@ -136,6 +140,7 @@ def prepare(inputs: JobInputs, clock: StageClock | None = None, *, max_frames: i
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
         )
+        before = place_on_floor(target.character, target.mapping, before, planted_frames(found.feet))
     with clock.stage("body"):
         assets, cached = body_assets(target.character, target.mapping)
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
@@ -143,22 +148,27 @@ def prepare(inputs: JobInputs, clock: StageClock | None = None, *, max_frames: i
                     warnings, cached)  # fmt: skip
 
 
-def refine(prepared: Prepared, clock: StageClock | None = None, options: RetargetOptions | None = None) -> Retargeted:
-    """Run the refinement stages switched on in ``options`` (default: the job's) on "before"."""
-    clock = clock or StageClock()
+def refine_context(prepared: Prepared, options: RetargetOptions | None = None) -> RefineContext:
+    """What the refinement stages read, from the prepared job (``options``: default the job's)."""
     opts = options or prepared.inputs.options
-    device = resolve_device(opts.device)
-    warnings = list(prepared.warnings)
-    if device.type != opts.device.split(":")[0] and opts.device != "auto":
-        warnings.append(f"device {opts.device!r} is not available here: the job ran on the CPU")
-    ctx = RefineContext(
+    return RefineContext(
         target=prepared.target.character, target_mapping=prepared.target.mapping,
         parts=prepared.assets.parts, sdf=prepared.assets.sdf,
         source_body=prepared.source_body.character, source_mapping=prepared.source_body.mapping,
         source_view=prepared.source_view, self_contacts=prepared.contacts.self_contacts,
         constraints=prepared.constraints, feet=prepared.target_feet, before=prepared.before,
-        options=opts, device=device,
+        options=opts, device=resolve_device(opts.device),
     )  # fmt: skip
+
+
+def refine(prepared: Prepared, clock: StageClock | None = None, options: RetargetOptions | None = None) -> Retargeted:
+    """Run the refinement stages switched on in ``options`` (default: the job's) on "before"."""
+    clock = clock or StageClock()
+    opts = options or prepared.inputs.options
+    ctx = refine_context(prepared, opts)
+    warnings = list(prepared.warnings)
+    if ctx.device.type != opts.device.split(":")[0] and opts.device != "auto":
+        warnings.append(f"device {opts.device!r} is not available here: the job ran on the CPU")
     motion = prepared.before
     run, skipped, reports = ["read", "copy", "contacts", "body"], [], {}
     for info, stage in refinement_stages():
@@ -226,4 +236,4 @@ def run_job(
                       dict(clock.seconds), result.warnings, paths["source_glb"])  # fmt: skip
 
 
-__all__ = ["StageClock", "prepare", "prepare_source", "refine", "retarget", "run_job", "source_body", "write_outputs"]
+__all__ = ["StageClock", "prepare", "prepare_source", "refine", "refine_context", "retarget", "run_job", "source_body", "write_outputs"]
