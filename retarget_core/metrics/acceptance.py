@@ -363,6 +363,37 @@ def _frame(
     return depth, hand
 
 
+@dataclass
+class PoseMeasures:
+    """One posed body, on the body's own scale (m).
+
+    depth: ``(V,)`` counted penetration depth of every vertex (0 where none; head vertices: into the torso).
+    hand_distance: ``(2, 4)`` hand (left, right) x part (:data:`CONTACT_PARTS`) distance.
+    """
+
+    depth: np.ndarray
+    hand_distance: np.ndarray
+
+
+def measure_pose(
+    character: Character, mapping: JointMapping, posed: np.ndarray, params: AcceptanceParams | None = None
+) -> PoseMeasures:
+    """Penetration depths and hand distances of ``character`` with posed vertices ``posed (V, 3)``."""
+    params = params or AcceptanceParams()
+    body = acceptance_body(character, mapping)
+    plan = _plan(body)
+    depth, hand = _frame(body, plan, np.asarray(posed, dtype=np.float64), params.contact_range_m / body.scale_to_180)
+    return PoseMeasures(depth, _hand_table(plan, hand))
+
+
+def _hand_table(plan: _Plan, hand: dict[tuple[int, str], float]) -> np.ndarray:
+    out = np.full((len(HANDS), len(CONTACT_PARTS)), np.inf)
+    for h in range(len(HANDS)):
+        for ci, c in enumerate(CONTACT_PARTS):
+            out[h, ci] = min(hand.get((h, t), math.inf) for t in plan.contact_of[h][c])
+    return out
+
+
 def measure_acceptance(
     character: Character, mapping: JointMapping, motion: Motion, params: AcceptanceParams | None = None
 ) -> ClipAcceptance:
@@ -402,9 +433,7 @@ def measure_acceptance(
             pen_max[f] = depth[limb].max() if limb.any() else 0.0
             head_count[f], head_sum[f] = head.sum(), depth[head].sum()
             head_max[f] = depth[head].max() if head.any() else 0.0
-            for h in range(len(HANDS)):
-                for ci, c in enumerate(CONTACT_PARTS):
-                    hand_distance[f, h, ci] = min(hand.get((h, t), math.inf) for t in plan.contact_of[h][c])
+            hand_distance[f] = _hand_table(plan, hand)
 
     _, gpos = motion.global_transforms()
     joints = _canonical_positions(character, mapping, gpos) * k
@@ -625,8 +654,10 @@ __all__ = [
     "Targets",
     "acceptance_figures",
     "acceptance_ratios",
+    "PoseMeasures",
     "figures_from_measures",
     "measure_acceptance",
+    "measure_pose",
     "meets_targets",
     "planted_feet",
 ]
