@@ -3,7 +3,9 @@
 - :func:`two_boxes`: a "character" of two boxes, a big one skinned to ``Hips`` and a small one skinned to
   ``LeftHand`` (with a vertex-less ``Spine`` between them so the two are not adjacent segments);
   :func:`box_pose` pushes the small box into the big one's top face by a known depth.
-- :func:`hand_on_hip_pose`: the left hand of a real body placed on its hip by optimising the arm's rotations.
+- :func:`hand_on_vertex_pose`: a hand of a real body placed on a chosen vertex (hip, cheek, thigh: see
+  :func:`hip_vertex`, :func:`cheek_vertex`, :func:`thigh_vertices`) by optimising the arm's rotations;
+  :func:`hand_on_hip_pose` on the hip.
 """
 
 from __future__ import annotations
@@ -62,26 +64,56 @@ def box_pose(depth: float | Tensor, frames: int = 1, dtype: torch.dtype = torch.
     return grot, gpos
 
 
-def hand_on_hip_pose(character: Character, mapping: JointMapping, parts: BodyParts, side: str = "Left",
-                     gap: float = -0.004, steps: int = 120) -> tuple[Tensor, Tensor, int]:  # fmt: skip
-    """Local rotations ``(J, 4)`` (rest pose, with the arm moved) that put the ``side`` hand's palm on the hip,
-    the world translations being the rest ones; returns (local rotations, local translations, hip vertex).
+def hip_vertex(character: Character, parts: BodyParts, side: str = "Left") -> int:
+    """A vertex on the outer side of the pelvis (far along +x for the left side, at mid height of the part)."""
+    sign = 1.0 if side == "Left" else -1.0
+    hip_vertices = parts.part_vertices(parts.index("Hips"))
+    hv = character.vertices[hip_vertices]
+    score = sign * hv[:, 0] - 2.0 * (hv[:, 1] - hv[:, 1].median()).abs()
+    return int(hip_vertices[int(score.argmax())])
 
-    The arm's rotations (Arm, ForeArm, Hand) are optimised so the hand vertex nearest to a vertex on the outer
-    side of the hip lies ``gap`` outside it along the hip's normal (negative: slightly inside, as a hand pressed
-    on a body)."""
+
+def cheek_vertex(character: Character, parts: BodyParts, side: str = "Left") -> int:
+    """A vertex on the ``side`` cheek: the head vertex farthest to that side and forward, between a quarter and
+    a half of the head's height."""
+    sign = 1.0 if side == "Left" else -1.0
+    head = parts.part_vertices(parts.index("Head"))
+    hv = character.vertices[head]
+    lo, hi = float(hv[:, 1].min()), float(hv[:, 1].max())
+    band = (hv[:, 1] > lo + 0.3 * (hi - lo)) & (hv[:, 1] < lo + 0.5 * (hi - lo))
+    score = sign * hv[:, 0] + 0.6 * hv[:, 2]
+    score[~band] = -torch.inf
+    return int(head[int(score.argmax())])
+
+
+def thigh_vertices(character: Character, parts: BodyParts, side: str = "Left", count: int = 4) -> list[int]:
+    """``count`` vertices down the outer side of the ``side`` thigh, from a third to two thirds of its length."""
+    sign = 1.0 if side == "Left" else -1.0
+    thigh = parts.part_vertices(parts.index(f"{side}UpLeg"))
+    tv = character.vertices[thigh]
+    lo, hi = float(tv[:, 1].min()), float(tv[:, 1].max())
+    out = []
+    for k in range(count):
+        y = hi - (0.3 + 0.35 * k / max(count - 1, 1)) * (hi - lo)
+        score = sign * tv[:, 0] - 4.0 * (tv[:, 1] - y).abs()
+        out.append(int(thigh[int(score.argmax())]))
+    return out
+
+
+def hand_on_vertex_pose(character: Character, mapping: JointMapping, parts: BodyParts, vertex: int,
+                        side: str = "Left", gap: float = -0.004, steps: int = 120,
+                        joints: tuple[str, ...] = ("Arm", "ForeArm", "Hand")) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Local rotations ``(J, 4)`` (rest pose, with the arm moved) that put the ``side`` hand on rest vertex
+    ``vertex``, the local translations being the rest ones; returns (local rotations, local translations).
+
+    The arm's rotations (``joints`` of the side) are optimised so the hand vertex nearest to the point ``gap``
+    outside ``vertex`` along its normal lies on that point (negative gap: slightly inside, as a hand pressed on
+    a body)."""
     sk = character.skeleton
     verts = character.vertices
-    hips_part = parts.index("Hips") if side == "Left" else parts.index("Hips")
-    sign = 1.0 if side == "Left" else -1.0
-    hip_vertices = parts.part_vertices(hips_part)
-    hv = verts[hip_vertices]
-    # Outer side of the pelvis: far along +x (left) at mid height of the part, facing sideways.
-    score = sign * hv[:, 0] - 2.0 * (hv[:, 1] - hv[:, 1].median()).abs()
-    hip_vertex = int(hip_vertices[int(score.argmax())])
-    normal = character.vertex_normals()[hip_vertex]
-    target = verts[hip_vertex] + gap * normal
-    chain = [mapping.joints[f"{side}{n}"] for n in ("Arm", "ForeArm", "Hand")]
+    normal = character.vertex_normals()[vertex]
+    target = verts[vertex] + gap * normal
+    chain = [mapping.joints[f"{side}{n}"] for n in joints]
     hand = parts.group(f"{side}Hand")[::3]  # a third of the hand's vertices is plenty to place it
     local_rot = sk.rest_rotations.clone()
     params = torch.zeros(len(chain), 3, requires_grad=True)
@@ -104,7 +136,16 @@ def hand_on_hip_pose(character: Character, mapping: JointMapping, parts: BodyPar
         r = local_rot.clone()
         for k, j in enumerate(chain):
             r[j] = rot.mul(sk.rest_rotations[j], _axis_angle(params[k]))
-    return r.detach(), sk.rest_translations.clone(), hip_vertex
+    return r.detach(), sk.rest_translations.clone()
+
+
+def hand_on_hip_pose(character: Character, mapping: JointMapping, parts: BodyParts, side: str = "Left",
+                     gap: float = -0.004, steps: int = 120) -> tuple[Tensor, Tensor, int]:  # fmt: skip
+    """The ``side`` hand's palm on the outer side of the hip (:func:`hand_on_vertex_pose`); returns (local
+    rotations, local translations, hip vertex)."""
+    vertex = hip_vertex(character, parts, side)
+    local_r, local_t = hand_on_vertex_pose(character, mapping, parts, vertex, side, gap, steps)
+    return local_r, local_t, vertex
 
 
 def _axis_angle(v: Tensor) -> Tensor:

@@ -11,17 +11,28 @@ import torch
 import trimesh
 
 from retarget_core import kinematics
+from retarget_core import rotations as rot
 from retarget_core.bodies import load_preset
-from retarget_core.body_parts import body_parts, mapping_by_name
+from retarget_core.body_parts import CLUSTERS, body_parts, mapping_by_name
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import build_correspondence, transfer_contacts
 from retarget_core.contacts.foot_contact import FootContactParams, detect_foot_contacts, fill_window
-from retarget_core.contacts.self_contact import detect_self_contacts
+from retarget_core.contacts.hand_distance import hand_part_distances
+from retarget_core.contacts.self_contact import contact_mask, detect_self_contacts
 from retarget_core.contacts.triangles import intersecting_pairs, triangles_intersect
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest_contacts import box_pose, hand_on_hip_pose, two_boxes  # noqa: E402
+from conftest_contacts import (  # noqa: E402
+    BIG,
+    SMALL,
+    box_pose,
+    cheek_vertex,
+    hand_on_vertex_pose,
+    hip_vertex,
+    thigh_vertices,
+    two_boxes,
+)
 
 
 @pytest.fixture(scope="module")
@@ -65,54 +76,153 @@ def _posed_clip(ch: Character, grot: torch.Tensor, gpos: torch.Tensor) -> torch.
     return ch.pose_vertices(grot, gpos)
 
 
-def test_box_hand_contacts_follow_the_papers_rules() -> None:
+def _box_at(ch: Character, hand_centres: torch.Tensor) -> torch.Tensor:
+    """The two-box body posed with the small box's centre at ``hand_centres (F, 3)`` (no rotation)."""
+    grot, gpos = box_pose(0.0, len(hand_centres), dtype=ch.vertices.dtype)
+    gpos[:, 2] = hand_centres.to(ch.vertices.dtype)
+    return ch.pose_vertices(grot, gpos)
+
+
+def _hand_on_top(gaps_180: list[float], ch: Character) -> torch.Tensor:
+    """Small box centred above the big one, its bottom ``gap`` above the top face (gaps at 1.80 m, scaled to
+    the two-box body; negative: sunk in)."""
+    s = ch.height / 1.80
+    y = torch.tensor([BIG + SMALL / 2 + g * s for g in gaps_180], dtype=ch.vertices.dtype)
+    return _box_at(ch, torch.stack([torch.zeros_like(y), y, torch.zeros_like(y)], dim=1))
+
+
+def test_hand_part_distance_is_exact_on_boxes() -> None:
+    ch, mapping = two_boxes(torch.float64)
+    parts = body_parts(ch, mapping)
+    torso, own_arm = CLUSTERS.index("torso"), CLUSTERS.index("left_arm")
+    # Face to face above the top, sunk in a little, fully inside, and corner to edge beside the top.
+    s = ch.height / 1.80
+    gaps = [0.002, 0.01, 0.04, -0.01, -0.36]  # at 1.80 m; -0.36 buries the 10 cm box 1 cm under the top
+    posed = _hand_on_top(gaps, ch)
+    dx, dy = 0.012, 0.009
+    beside = torch.tensor([[BIG / 2 + dx + SMALL / 2, BIG + dy + SMALL / 2, 0.0]], dtype=torch.float64)
+    posed = torch.cat([posed, _box_at(ch, beside)])
+    d = hand_part_distances(ch, parts, posed)
+    assert d.hands == ("LeftHand", "RightHand") and d.parts == CLUSTERS
+    assert not bool(d.measured[0, own_arm]) and not bool(d.measured[1].any())  # own arm; no right hand
+    got = d.distance[:, 0, torso]
+    expected = [gaps[0] * s, gaps[1] * s, gaps[2] * s, 0.0, 0.0, float(np.hypot(dx, dy))]
+    assert torch.allclose(got, torch.tensor(expected, dtype=torch.float64), atol=1e-6), got
+    assert d.inside[:, 0, torso].tolist() == [False, False, False, True, True, False]
+    assert torch.isinf(d.distance[:, 0, own_arm]).all()
+    # Pairs: distinct hand vertices (of the small box) paired with big-box vertices, nearest first.
+    hand = parts.part_vertices(parts.index("LeftHand"))
+    pairs = d.pairs[:, 0, torso]
+    assert torch.isin(pairs[..., 0], hand).all() and not torch.isin(pairs[..., 1], hand).any()
+    assert bool((d.pair_distance[:, 0, torso, 1:] >= d.pair_distance[:, 0, torso, :1]).all())
+    # Beyond max_distance: inf.
+    far = hand_part_distances(ch, parts, _hand_on_top([0.2], ch))
+    assert torch.isinf(far.distance[0, 0, torso])
+
+
+def test_box_hand_contacts_rest_slide_and_release() -> None:
     ch, mapping = two_boxes()
     parts = body_parts(ch, mapping)
-    frames = 8
-    # Pressed 1 cm in and moving together (the whole body translates): a contact, 3 closest pairs.
-    grot, gpos = box_pose(0.01, frames)
-    gpos = gpos + torch.linspace(0, 0.2, frames)[:, None, None] * torch.tensor([1.0, 0.0, 0.0])
-    sc = detect_self_contacts(parts, _posed_clip(ch, grot, gpos), ch.height, 30.0)
-    assert sc.count == frames
-    assert set(sc.part_names[h] for h in sc.hand.tolist()) == {"LeftHand"}
-    assert set(sc.part_names[o] for o in sc.other.tolist()) == {"Hips"}
-    assert sc.pairs.shape == (frames, 3, 2) and bool(sc.intersecting.all())
-    assert float(sc.cosine.min()) > 0.9
-    hand = parts.part_vertices(parts.index("LeftHand"))
-    assert torch.isin(sc.pairs[..., 0], hand).all() and not torch.isin(sc.pairs[..., 1], hand).any()
-    # Pressed in but only the hand moves (sliding through the other box): not a contact.
-    grot, gpos = box_pose(0.01, frames)
-    gpos[:, 2, 0] += torch.linspace(0, 0.1, frames)
-    assert detect_self_contacts(parts, _posed_clip(ch, grot, gpos), ch.height, 30.0).count == 0
-    # Not intersecting: a contact only within the distance threshold (0.2 cm at 1.38 m, scaled to the body).
-    threshold = 0.002 * ch.height / 1.38
-    for gap, expected in ((0.5 * threshold, frames), (3 * threshold, 0)):
-        grot, gpos = box_pose(-gap, frames)
-        sc = detect_self_contacts(parts, _posed_clip(ch, grot, gpos), ch.height, 30.0)
-        assert sc.count == expected, gap
-        if expected:
-            assert not bool(sc.intersecting.any())
-            assert torch.allclose(sc.distance[:, 0], torch.full((frames,), gap), atol=1e-5)
-
-
-@pytest.mark.parametrize("side", ["Left", "Right"])
-def test_hand_placed_on_the_hip_is_detected(average, side: str) -> None:
-    ch, mapping, parts = average
-    local_r, local_t, hip_vertex = hand_on_hip_pose(ch, mapping, parts, side)
-    grot, gpos = kinematics.forward_kinematics(ch.skeleton.parents, local_r, local_t)
-    frames = 6
-    posed = ch.pose_vertices(grot, gpos)[None].repeat(frames, 1, 1)
-    posed = posed + torch.linspace(0, 0.1, frames)[:, None, None] * torch.tensor([0.0, 0.0, 1.0])  # walking on
+    # Resting 0.5 cm above the top and moving with the body: a contact on every frame, 3 closest pairs.
+    posed = _hand_on_top([0.005] * 6, ch) + torch.linspace(0, 0.2, 6)[:, None, None] * torch.tensor([1.0, 0.0, 0.0])
     sc = detect_self_contacts(parts, posed, ch.height, 30.0)
-    hand = parts.index(f"{side}Hand")
-    touched = {sc.part_names[o] for o in sc.other[sc.hand == hand].tolist()}
-    assert "Hips" in touched, sc.summary()
-    assert touched <= {"Hips", f"{side}UpLeg", "Spine"}, sc.summary()
-    assert int(sc.frames_with_contact().sum()) == frames
-    # The closest pairs lie where the hand meets the hip, within a few centimetres of the chosen point.
-    on_hip = sc.pairs[(sc.hand == hand) & (sc.other == parts.index("Hips"))]
-    assert float((posed[0, on_hip[..., 1].flatten()] - posed[0, hip_vertex]).norm(dim=1).min()) < 0.10
-    assert float(sc.distance.max()) < 0.02
+    assert sc.count == 6 and sc.frames_with_contact().all()
+    assert {sc.part_names[h] for h in sc.hand.tolist()} == {"LeftHand"}
+    assert {sc.part_names[o] for o in sc.other.tolist()} == {"Hips"}
+    assert {sc.part_clusters[c] for c in sc.part.tolist()} == {"torso"}
+    assert sc.pairs.shape == (6, 3, 2) and not bool(sc.intersecting.any())
+    assert float(sc.cosine.min()) > 0.9  # moving together
+    assert torch.allclose(sc.source_distance, torch.full((6,), 0.005 * ch.height / 1.80), atol=1e-5)
+    assert sc.summary() == [{"hand": "LeftHand", "other": "torso", "frames": 6, "first": 0, "last": 5}]
+    # Sunk 1 cm in and sliding across the top (only the hand moves): still a contact, intersecting.
+    centres = torch.zeros(6, 3)
+    centres[:, 1] = BIG + SMALL / 2 - 0.01 * ch.height / 1.80
+    centres[:, 0] = torch.linspace(-0.1, 0.1, 6)
+    sc = detect_self_contacts(parts, _box_at(ch, centres), ch.height, 30.0)
+    assert sc.count == 6 and bool(sc.intersecting.all()) and float(sc.source_distance.max()) == 0.0
+    # Hysteresis: lifting to 2 cm after touching stays a contact; hovering at 2 cm without touching is none;
+    # beyond 3 cm never; a short lift to 2.8 cm between two touches is filled, one to 4 cm is not.
+    cases = [
+        ([0.01, 0.02, 0.02, 0.04, 0.02], [True, True, True, False, False]),
+        ([0.02, 0.02, 0.02], [False, False, False]),
+        ([0.01, 0.028, 0.028, 0.01], [True, True, True, True]),
+        ([0.01, 0.04, 0.04, 0.01], [True, False, False, True]),
+    ]
+    for gaps, expected in cases:
+        sc = detect_self_contacts(parts, _hand_on_top(gaps, ch), ch.height, 30.0)
+        assert sc.frames_with_contact().tolist() == expected, (gaps, sc.source_distance)
+
+
+def test_contact_mask_rules() -> None:
+    d = torch.tensor([0.05, 0.01, 0.02, 0.024, 0.026, 0.02, 0.0, 0.029, 0.029, 0.0, 0.031, 0.0])[:, None]
+    on = contact_mask(d, 1.80, 30.0)[:, 0].tolist()
+    assert on == [False, True, True, True, True, True, True, True, True, True, False, True]
+    # Gap filling is limited to fill_s (0.2 s: 6 frames at 30 fps).
+    gap = torch.tensor([0.0] + [0.028] * 7 + [0.0])[:, None]
+    assert contact_mask(gap, 1.80, 30.0)[:, 0].tolist() == [True] + [False] * 7 + [True]
+    assert contact_mask(gap, 1.80, 60.0)[:, 0].all()  # 7 frames at 60 fps is under 0.2 s
+    # Thresholds scale with the body: 1.2 cm is touching at 1.80 m, not at 0.9 m (0.75 cm threshold).
+    assert bool(contact_mask(torch.tensor([[0.012]]), 1.80, 30.0).all())
+    assert not bool(contact_mask(torch.tensor([[0.012]]), 0.90, 30.0).any())
+
+
+@pytest.fixture(scope="module")
+def placed(average):
+    """The average body with its left hand on the hip, on the cheek, sliding down the thigh (5 frames, the
+    arm's rotations slerped between the hand on a high and a low point of the thigh), and in the rest pose."""
+    ch, mapping, parts = average
+
+    def pose(local_r: torch.Tensor, local_t: torch.Tensor) -> torch.Tensor:
+        grot, gpos = kinematics.forward_kinematics(ch.skeleton.parents, local_r, local_t)
+        return ch.pose_vertices(grot, gpos).detach()
+
+    hip = hand_on_vertex_pose(ch, mapping, parts, hip_vertex(ch, parts, "Left"), "Left", gap=0.003, steps=80)
+    cheek = hand_on_vertex_pose(ch, mapping, parts, cheek_vertex(ch, parts, "Left"), "Left", gap=-0.003, steps=80)
+    high, low = thigh_vertices(ch, parts, "Left", count=2)
+    top = hand_on_vertex_pose(ch, mapping, parts, high, "Left", gap=0.004, steps=80)
+    bottom = hand_on_vertex_pose(ch, mapping, parts, low, "Left", gap=0.004, steps=80)
+    slide = [pose(rot.slerp(top[0], bottom[0], torch.full(top[0].shape[:1], w)), top[1]) for w in np.linspace(0, 1, 5)]
+    rr, rp = ch.skeleton.rest_global()
+    return {"hip": pose(*hip), "cheek": pose(*cheek), "slide": torch.stack(slide), "rest": ch.pose_vertices(rr, rp)}
+
+
+def _touched(sc) -> set[str]:  # type: ignore[no-untyped-def]
+    return {f"{sc.part_names[h]}-{sc.part_clusters[c]}" for h, c in zip(sc.hand.tolist(), sc.part.tolist(), strict=True)}
+
+
+def test_hand_on_hip_cheek_and_sliding_on_thigh_are_detected(average, placed) -> None:
+    ch, _, parts = average
+    # Hip: resting 3 mm off the skin, held for 6 frames while the body walks on.
+    posed = placed["hip"][None].repeat(6, 1, 1) + torch.linspace(0, 0.1, 6)[:, None, None] * torch.tensor([0.0, 0.0, 1.0])
+    sc = detect_self_contacts(parts, posed, ch.height, 30.0, rest_vertices=ch.vertices)
+    assert sc.frames_with_contact().all() and "LeftHand-torso" in _touched(sc), sc.summary()
+    assert _touched(sc) <= {"LeftHand-torso", "LeftHand-left_leg"}, sc.summary()
+    assert float(sc.source_distance.min()) < 0.01
+    # Cheek: pressed 3 mm in (the source body's error): a contact with the head, the hand inside it.
+    sc = detect_self_contacts(parts, placed["cheek"][None].repeat(3, 1, 1), ch.height, 30.0)
+    head = sc.part == CLUSTERS.index("head")
+    assert "LeftHand-head" in _touched(sc) and bool(head.any()) and bool(sc.intersecting[head].all()), sc.summary()
+    assert sc.frames_with_contact().all()
+    # Sliding down the thigh: the hand moves along it, in contact on every frame.
+    slide = placed["slide"]
+    hand = parts.part_vertices(parts.index("LeftHand"))
+    assert float((slide[-1, hand].mean(0) - slide[0, hand].mean(0)).norm()) > 0.05
+    sc = detect_self_contacts(parts, slide, ch.height, 30.0)
+    leg = sc.part == CLUSTERS.index("left_leg")
+    assert sorted(set(sc.frame[leg].tolist())) == list(range(len(slide))), sc.summary()
+    # The pairs touch: hand vertex and thigh vertex within a few centimetres (vertex spacing on the thigh).
+    assert float(sc.distance[leg].min(dim=1).values.max()) < 0.05
+
+
+def test_hands_away_are_not_contacts(average, placed) -> None:
+    ch, _, parts = average
+    posed = torch.stack([placed["rest"], placed["hip"]])
+    d = hand_part_distances(ch, parts, posed)
+    assert float(d.nearest()[0].min()) > 0.03  # rest pose: both hands more than 3 cm from everything
+    sc = detect_self_contacts(parts, posed, ch.height, 30.0)
+    assert sc.frames_with_contact().tolist() == [False, True]
+    # The right hand stays at rest beside the body on the hip frame: no contact of it.
+    assert {sc.part_names[h] for h in sc.hand.tolist()} == {"LeftHand"}
 
 
 def test_rest_pose_has_no_self_contact(average) -> None:
@@ -128,14 +238,14 @@ def test_two_hand_grip_in_swordplay_clip(shared_data: Path) -> None:
     from retarget_core.loading import load_character, load_motion
 
     source = load_character("builtin:male_average")
-    motion = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh").motion
-    mapping = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh").mapping
+    loaded = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh")
+    motion, mapping = loaded.motion, loaded.mapping
     copied = copy_retarget(motion, mapping, source.character.skeleton, source.mapping)
     grot, gpos = copied.global_transforms()
     step = 2  # 60 -> 30 fps
     posed = source.character.pose_vertices(grot[150:450:step], gpos[150:450:step])
     sc = detect_self_contacts(body_parts(source.character, source.mapping), posed, source.character.height, copied.fps / step)
-    both = [e for e in sc.summary() if {e["hand"], e["other"]} == {"LeftHand", "RightHand"}]
+    both = [e for e in sc.summary() if (e["hand"], e["other"]) in {("LeftHand", "right_arm"), ("RightHand", "left_arm")}]
     assert both and max(e["frames"] for e in both) >= 20, sc.summary()
 
 
