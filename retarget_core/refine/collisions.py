@@ -72,8 +72,9 @@ class CollisionParams:
     cm^2 (lengths) or rad^2 (residuals)."""
 
     knot_spacing: int = 4  # frames between residual knots: 7.5 knots/s at 30 fps follows any arm motion
-    iterations: int = 50  # Adam steps on the sentinels (converged on the shared clips, see the benchmark)
-    finish_iterations: int = 15  # more steps once every penetrating vertex joins the points
+    iterations: int = 40  # Adam steps on the sentinels (converged on the shared clips, see the benchmark)
+    finish_iterations: int = 12  # more steps once every penetrating vertex joins the points
+    sentinel_frame_stride: int = 1  # 2 would halve the sentinel loop, but contacts on skipped frames drift (measured)
     lr: float = 0.02  # radians per Adam step at the start (a cm-deep arm needs ~0.1 rad)
     lr_final_fraction: float = 0.1  # cosine decay to this fraction, so the knots settle
     sentinel_cell_m: float = 0.08  # one sentinel per 8 cm cell of a limb or the head: about 500
@@ -89,14 +90,16 @@ class CollisionParams:
     worse_depth_m: float = 0.002  # or its deepest vertex goes 2 mm deeper
     active_margin: int = 6  # frames optimised around each marked frame
     fallback_ramp: int = 8  # frames over which a worse span blends back to the input
-    fallback_rounds: int = 3
+    fallback_rounds: int = 4
+    fallback_factor: float = 0.5  # a worse frame's residual is halved per round ...
+    fallback_floor: float = 0.2  # ... and dropped once below this fraction
     finish_lr_fraction: float = 0.3  # the finishing pass starts from a converged pose: smaller steps
     recull_every: int = 8  # steps between re-selections of the triples near their segment
     recull_within_m: float = 0.02  # triples farther outside than this cannot penetrate within 8 steps
     finish_slack_m: float = 0.01  # the finishing pass's extra vertices: segments within 1 cm on the input
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0
-    w_contact: float = 5.0
+    w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
     w_identity: float = 2.0  # per rad^2 per knot, times the joint's stiffness
     w_smooth: float = 20.0  # per rad^2 of the knots' second difference
     joint_stiffness: dict[str, float] = field(default_factory=lambda: dict(JOINT_STIFFNESS))
@@ -129,6 +132,15 @@ class _Problem:
     ee_joints: Tensor  # (E,)
     ee_weight: Tensor  # (E,)
     ee_in: Tensor  # (Fa, E, 3)
+
+    def every(self, stride: int) -> _Problem:
+        """The same problem on every ``stride``-th optimised frame (the residual is smooth over knots every few
+        frames, so fewer frames still constrain every knot)."""
+        if stride <= 1:
+            return self
+        k = torch.arange(0, len(self.frames), stride)
+        return _Problem(self.joints, self.stiffness, self.frames[k], self.basis[k], self.local_in[k], self.trans[k],
+                        self.ee_joints, self.ee_weight, self.ee_in[k])  # fmt: skip
 
     def residual(self, knots: Tensor) -> Tensor:
         """``(Fa, Jo, 3)`` rotation vectors of the knots ``(N, Jo, 3)``."""
@@ -275,7 +287,7 @@ def _merge(before: FrameCheck, after: FrameCheck) -> FrameCheck:
 def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None = None) -> StageOutcome:
     """Collision resolution of ``motion`` (a motion on ``ctx.target``'s skeleton, ``F`` frames); see module doc."""
     params = params or CollisionParams()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     ch, sdf = ctx.target, ctx.sdf
     scale = sdf.scale_to_180
     f_n = motion.num_frames
@@ -307,13 +319,14 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
         contact_pts = ctx.constraints.i.unique() if ctx.constraints.count else torch.zeros(0, dtype=torch.long)
         points = torch.unique(torch.cat([sentinels, contact_pts]))
-        terms_in = _build_terms(ctx, prob, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
+        coarse = prob.every(params.sentinel_frame_stride)
+        terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
         timings["setup"] = time.perf_counter() - t
         t = time.perf_counter()
-        terms = _optimise(ctx, prob, terms_in, knots, params.iterations, params.lr, params, scale)
+        terms = _optimise(ctx, coarse, terms_in, knots, params.iterations, params.lr, params, scale)
         iterations = params.iterations
         timings["sentinel_loop"] = time.perf_counter() - t
         ctx.report_progress(0.6)
@@ -339,7 +352,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         resid_all = (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
         joints = prob.joints.tolist()
         weight = torch.ones(f_n)
-        bad_all = torch.zeros(f_n, dtype=torch.bool)
+        cap = torch.ones(f_n)
         check_set = torch.nonzero(resid_all.abs().amax(dim=(1, 2)) > params.changed_rad).flatten()
         final = before
         for _ in range(params.fallback_rounds):
@@ -350,17 +363,23 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             final = _merge(final, after)
             worse = _worse(before, after, contacts, params, scale)
             if not bool(worse.any()):
+                check_set = check_set[:0]
                 break
-            bad_all[check_set[worse]] = True
-            new_w = fallback_weights(bad_all, params.fallback_ramp)
+            # Halve the residual where it made things worse (to zero after a few rounds), ramped around.
+            bad = check_set[worse]
+            cap[bad] = torch.where(weight[bad] * params.fallback_factor < params.fallback_floor, 0.0, weight[bad] * params.fallback_factor)
+            new_w = torch.minimum(weight, fallback_weights(cap, params.fallback_ramp))
             check_set = torch.nonzero(new_w < weight - 1e-6).flatten()
-            weight = torch.minimum(weight, new_w)
-            # Frames blended fully back are the input's again.
-            back = check_set[weight[check_set] == 0]
+            weight = new_w
+            back = check_set[weight[check_set] == 0]  # frames blended fully back are the input's again
             if len(back):
                 final.volume[back], final.max_depth[back] = before.volume[back], before.max_depth[back]
                 final.count[back] = before.count[back]
             check_set = check_set[weight[check_set] > 0]
+        if len(check_set):  # the last round's changes were not checked: those frames go back to the input
+            weight[check_set] = 0.0
+            final.volume[check_set], final.max_depth[check_set] = before.volume[check_set], before.max_depth[check_set]
+            final.count[check_set] = before.count[check_set]
         out_rot = rot.normalize(_apply_residual(rot_in, joints, resid_all * weight[:, None, None]))
         keep = resid_all.abs().amax(dim=(1, 2)) * weight <= params.changed_rad
         out_rot[keep] = rot_in[keep]
@@ -375,6 +394,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         "frames_changed": int(changed.sum()), "frames_optimised": int(len(active)), "iterations": iterations,
         "energy_terms": {k: round(v, 3) for k, v in terms.items()},
         "timings_s": {k: round(v, 3) for k, v in timings.items()}, "seconds": round(time.perf_counter() - t0, 3),
+        "cpu_seconds": round(time.process_time() - cpu0, 3),
     })  # fmt: skip
     ctx.report_progress(1.0)
     result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)

@@ -40,17 +40,18 @@ def smoothstep(x: Tensor) -> Tensor:
     return x * x * (3.0 - 2.0 * x)
 
 
-def fallback_weights(bad: Tensor, ramp: int) -> Tensor:
-    """``(F,)`` weights in 0..1: 0 on frames ``bad (F,)`` and rising smoothly back to 1 over ``ramp`` frames
-    around them (a span where a change made things worse returns smoothly to the input)."""
-    f_n = bad.shape[0]
-    w = torch.ones(f_n)
-    idx = torch.nonzero(bad).flatten()
+def fallback_weights(cap: Tensor, ramp: int) -> Tensor:
+    """``(F,)`` weights in 0..1 that are at most ``cap (F,)`` on every frame and rise smoothly back to 1 over
+    ``ramp`` frames around the capped ones: ``w(t) = min_u cap_u + (1 - cap_u) * smoothstep(|t - u| / ramp)``
+    (a span where a change made things worse returns smoothly towards the input)."""
+    f_n = cap.shape[0]
+    idx = torch.nonzero(cap < 1.0).flatten()
     if len(idx) == 0:
-        return w
+        return torch.ones(f_n)
     t = torch.arange(f_n, dtype=torch.float32)
-    dist = (t[:, None] - idx[None, :].float()).abs().amin(dim=1)
-    return smoothstep(dist / max(ramp, 1))
+    c = cap[idx].float()[None, :]
+    ramped = c + (1.0 - c) * smoothstep((t[:, None] - idx[None, :].float()).abs() / max(ramp, 1))
+    return ramped.amin(dim=1)
 
 
 __all__ = ["bspline_basis", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep"]
