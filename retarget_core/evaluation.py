@@ -1,10 +1,13 @@
-"""The evaluation table (``retarget eval``): methods x motions x bodies, split into skinny / medium / bulky
-bodies and contact / no-contact clips like paper 1's appendix D, printed and written as JSON and Markdown.
+"""The evaluation table (``retarget eval``): methods x motions x bodies, with the acceptance figures of
+``../shared/ACCEPTANCE.md`` (:mod:`retarget_core.metrics.acceptance`) and our own metrics, by body group and
+contact / no-contact clip, with the ratios to the copy where the targets are ratios.
 
 A method is a set of refinement stages (:data:`METHODS`): ``copy`` runs none (the baseline, always measured
-first: every other method's MPJPE and M_i / M_o are measured against it). Every job runs through
+first: the ratios, MPJPE and M_i / M_o of every other method are against it). Every job runs through
 :func:`retarget_core.pipeline.prepare` and :func:`retarget_core.pipeline.refine`, exactly as a job of the
-service or the CLI does.
+service or the CLI does. The acceptance figures are measured like the judge does: the result on the target
+against the source motion on its own body (the source view; with ``source_glb_body`` the clip is first written
+as a GLB on that body and read back, as a studio would send it).
 """
 
 from __future__ import annotations
@@ -22,6 +25,13 @@ from retarget_core.character import Character
 from retarget_core.jobs import JobInputs
 from retarget_core.loading import load_character
 from retarget_core.measure import MEASURE_THREADS, measure_job, torch_threads
+from retarget_core.metrics.acceptance import (
+    AcceptanceFigures,
+    ClipAcceptance,
+    figures_from_measures,
+    measure_acceptance,
+    meets_targets,
+)
 from retarget_core.metrics.report import MetricsReport
 from retarget_core.options import RetargetOptions
 from retarget_core.stages import REFINEMENT_STAGE_NAMES, stage_info
@@ -42,26 +52,45 @@ def method_options(method: str, fps: float | None) -> RetargetOptions:
     return RetargetOptions(fps=fps, stages={"contacts": True, **stages})
 
 
-# --- the evaluation table -----------------------------------------------------------------------------------
+# --- what is tabled ------------------------------------------------------------------------------------------
 
-TABLE_METRICS: tuple[tuple[str, str], ...] = (
-    ("penetration_volume", "pen. vol. cm^3"),
+ACCEPTANCE_METRICS: tuple[tuple[str, str], ...] = (
+    ("pen_percent", "pen %v"),
+    ("frames_over_1cm_percent", "frames >1cm %"),
+    ("head_percent", "head %v"),
+    ("contact_preservation", "contact pres."),
+    ("false_contacts", "false contacts"),
+    ("foot_accuracy", "foot acc."),
+    ("skate_cm", "skate cm/fr"),
+    ("ground_penetration_cm", "ground pen. cm"),
+    ("float_cm", "float cm"),
+    ("end_effector_error_cm", "EE err cm"),
+    ("jerk_ratio", "jerk ratio"),
+)
+"""The judge's figures (ACCEPTANCE.md), at 1.80 m and 30 fps."""
+
+OUR_METRICS: tuple[tuple[str, str], ...] = (
+    ("penetrating_vertices_percent", "SDF pen. %v"),
     ("penetration_max_depth", "pen. max cm"),
-    ("penetrating_vertices_percent", "pen. verts %"),
     ("m_c", "M_c cm^2"),
-    ("contact_distance_mean", "contact err cm"),
-    ("contact_satisfied_percent", "contacts kept %"),
-    ("foot_contact_accuracy", "foot acc."),
-    ("foot_skate", "skate cm/fr"),
+    ("m_i", "M_i cm^2"),
+    ("m_o", "M_o cm^2"),
+    ("contact_distance_mean", "pair dist. cm"),
     ("mpjpe", "MPJPE cm"),
 )
+"""Our own measures (docs/metrics.md), at 1.80 m; M_i / M_o and MPJPE are against the copy."""
+
+RATIO_METRICS: tuple[str, ...] = ("pen_percent", "frames_over_1cm_percent", "end_effector_error_cm", "head_percent")
+"""Figures whose targets are ratios to the copy: tabled as after / before of the group means."""
+WORST_CASE: dict[str, str] = {"contact_preservation": "min", "foot_accuracy": "min", "false_contacts": "max"}
+"""Figures whose targets hold on every clip x body: the group's worst job is tabled beside the mean."""
 
 
 class BodyInfo(BaseModel):
     name: str
     height_m: float
     bulk_index: float = Field(description="mesh volume / height^3 (higher is bulkier)")
-    group: str = Field(description="skinny, medium or bulky")
+    group: str = Field(description="body group: given (held-out split) or skinny / medium / bulky by bulk")
 
 
 class ClipInfo(BaseModel):
@@ -77,7 +106,9 @@ class EvalRow(BaseModel):
     method: str
     body: str
     clip: str
-    values: dict[str, float | None] = Field(description="summary metrics at 1.80 m")
+    values: dict[str, float | None] = Field(description="acceptance figures and our metrics at 1.80 m")
+    targets_met: dict[str, bool] = Field(default_factory=dict, description="ACCEPTANCE.md targets vs the copy")
+    ms_per_frame: float | None = Field(default=None, description="refinement stages' time per frame (copy: 0)")
 
 
 class EvalGroup(BaseModel):
@@ -86,6 +117,10 @@ class EvalGroup(BaseModel):
     clips: str
     jobs: int
     values: dict[str, float | None] = Field(description="means over the jobs of the group (nulls left out)")
+    worst: dict[str, float | None] = Field(default_factory=dict, description="see WORST_CASE")
+    ratios: dict[str, float | None] = Field(default_factory=dict, description="group mean / the copy's")
+    targets_met_share: float | None = Field(default=None, description="share of jobs meeting every target")
+    ms_per_frame: float | None = None
 
 
 class EvalTable(BaseModel):
@@ -103,31 +138,24 @@ class EvalTable(BaseModel):
     settings: dict[str, Any] = Field(default_factory=dict)
 
     def to_markdown(self) -> str:
-        """The grouped tables as Markdown (values at a 1.80 m character)."""
-        cols = [m for m in self.metrics]
-        head = "| method | bodies | clips | jobs | " + " | ".join(self.labels[c] for c in cols) + " |"
-        sep = "|" + "---|" * (4 + len(cols))
-
-        def line(g: EvalGroup) -> str:
-            return (
-                f"| {g.method} | {g.bodies} | {g.clips} | {g.jobs} | "
-                + " | ".join(_fmt(g.values.get(c)) for c in cols)
-                + " |"
-            )
-
-        out = ["## By body group and clip group (values at 1.80 m)", "", head, sep]
-        out += [line(g) for g in self.groups]
-        out += ["", "## By body, all clips (bodies from skinny to bulky)", "", head, sep]
-        out += [line(g) for g in self.per_body]
+        """The grouped tables as Markdown (lengths at a 1.80 m character)."""
+        acc = [n for n, _ in ACCEPTANCE_METRICS]
+        ours = [n for n, _ in OUR_METRICS]
+        out = ["## Acceptance figures by body group and clip group", ""]
+        out += _group_table(self.groups, acc, self.labels, with_targets=True)
+        out += ["", "## Ratios to the copy (targets: pen %v <= 0.25, frames >1cm <= 0.2, EE err <= 1.3)", ""]
+        out += ["| method | bodies | clips | jobs | " + " | ".join(self.labels[r] for r in RATIO_METRICS) + " |"]
+        out += ["|" + "---|" * (4 + len(RATIO_METRICS))]
+        out += [f"| {g.method} | {g.bodies} | {g.clips} | {g.jobs} | " + " | ".join(_fmt(g.ratios.get(r)) for r in RATIO_METRICS) + " |"
+                for g in self.groups if g.method != "copy"]  # fmt: skip
+        out += ["", "## Our metrics (SDF penetration, paper 2's M_c / M_i / M_o, MPJPE vs the copy)", ""]
+        out += _group_table(self.groups, ours, self.labels, with_targets=False)
+        out += ["", "## By body, all clips", ""]
+        out += _group_table(self.per_body, acc, self.labels, with_targets=True)
         out += ["", "## Bodies", "", "| body | height m | bulk index | group |", "|---|---|---|---|"]
         out += [f"| {b.name} | {b.height_m:.3f} | {b.bulk_index:.4f} | {b.group} |" for b in self.bodies]
-        out += [
-            "",
-            "## Clips",
-            "",
-            "| clip | frames | fps | contact frames | group | main contacts (frames) |",
-            "|---|---|---|---|---|---|",
-        ]
+        out += ["", "## Clips", "", "| clip | frames | fps | contact frames | group | main contacts (frames) |",
+                "|---|---|---|---|---|---|"]  # fmt: skip
         out += [
             f"| {c.name} | {c.frames} | {c.fps:g} | {c.contact_frames} | {c.group} | "
             + ", ".join(f"{e['hand']}-{e['other']} ({e['frames']})" for e in c.contacts[:3])
@@ -137,28 +165,88 @@ class EvalTable(BaseModel):
         return "\n".join(out) + "\n"
 
 
+def _group_table(groups: list[EvalGroup], cols: list[str], labels: dict[str, str], with_targets: bool) -> list[str]:
+    extra = ["worst", "all targets met", "ms/frame"] if with_targets else []
+    head = "| method | bodies | clips | jobs | " + " | ".join([labels[c] for c in cols] + extra) + " |"
+    lines = [head, "|" + "---|" * (4 + len(cols) + len(extra))]
+    for g in groups:
+        cells = [_fmt(g.values.get(c)) for c in cols]
+        if with_targets:
+            worst = ", ".join(f"{labels[k]} {_fmt(v)}" for k, v in g.worst.items())
+            met = "-" if g.targets_met_share is None else f"{100 * g.targets_met_share:.0f} %"
+            cells += [worst, met, _fmt(g.ms_per_frame)]
+        lines.append(f"| {g.method} | {g.bodies} | {g.clips} | {g.jobs} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _fmt(v: float | None) -> str:
     if v is None:
         return "-"
     return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
 
 
-def _summary_values(report: MetricsReport, method: str) -> dict[str, float | None]:
+def _our_values(report: MetricsReport, method: str) -> dict[str, float | None]:
     metrics = report.before if method == "copy" else report.after
     assert metrics is not None
     out: dict[str, float | None] = {}
-    for name, _ in TABLE_METRICS:
+    for name, _ in OUR_METRICS:
         v = getattr(metrics.summary, name)
         out[name] = v.value_at_180 if hasattr(v, "value_at_180") else v
     return out
 
 
-def _mean_values(rows: list[EvalRow]) -> dict[str, float | None]:
-    out: dict[str, float | None] = {}
-    for name, _ in TABLE_METRICS:
-        vals = [r.values[name] for r in rows if r.values.get(name) is not None]
-        out[name] = round(sum(vals) / len(vals), 4) if vals else None  # type: ignore[arg-type]
-    return out
+def _acceptance_values(fig: AcceptanceFigures) -> dict[str, float | None]:
+    return {name: getattr(fig, name) for name, _ in ACCEPTANCE_METRICS}
+
+
+def _mean(vals: list[float | None]) -> float | None:
+    xs = [v for v in vals if v is not None]
+    return round(sum(xs) / len(xs), 4) if xs else None
+
+
+def _summarise(method: str, bodies: str, clips: str, sel: list[EvalRow], copy: list[EvalRow]) -> EvalGroup:
+    names = list(sel[0].values)
+    values = {n: _mean([r.values.get(n) for r in sel]) for n in names}
+    worst: dict[str, float | None] = {}
+    for n, how in WORST_CASE.items():
+        xs = [v for r in sel if (v := r.values.get(n)) is not None]
+        worst[n] = (min(xs) if how == "min" else max(xs)) if xs else None
+    ratios: dict[str, float | None] = {}
+    for n in RATIO_METRICS:
+        a, b = values.get(n), _mean([r.values.get(n) for r in copy])
+        ratios[n] = round(a / b, 4) if a is not None and b else None
+    met = [all(r.targets_met.values()) for r in sel if r.targets_met]
+    times = [r.ms_per_frame for r in sel]
+    return EvalGroup(method=method, bodies=bodies, clips=clips, jobs=len(sel), values=values, worst=worst,
+                     ratios=ratios, targets_met_share=(sum(met) / len(met)) if met else None,
+                     ms_per_frame=_mean(times))  # fmt: skip
+
+
+def group_rows(rows: list[EvalRow], methods: list[str], body_group: dict[str, str], clip_group: dict[str, str],
+               body_order: list[str]) -> tuple[list[EvalGroup], list[EvalGroup]]:  # fmt: skip
+    """The table's groups: (method x body group x clip group, "all" included) and (method x body)."""
+    groups: list[EvalGroup] = []
+    bgs = sorted(set(body_group.values())) + ["all"]
+    for m in methods:
+        for bg in bgs:
+            for cg in ("contact", "no-contact", "all"):
+                def keep(r: EvalRow, bg: str = bg, cg: str = cg) -> bool:
+                    return bg in ("all", body_group[r.body]) and cg in ("all", clip_group[r.clip])
+
+                sel = [r for r in rows if r.method == m and keep(r)]
+                if sel:
+                    copy = [r for r in rows if r.method == "copy" and keep(r)]
+                    groups.append(_summarise(m, bg, cg, sel, copy))
+    per_body = [
+        _summarise(m, b, "all", sel, [r for r in rows if r.method == "copy" and r.body == b])
+        for m in methods
+        for b in body_order
+        if (sel := [r for r in rows if r.method == m and r.body == b])
+    ]
+    return groups, per_body
+
+
+# --- bodies --------------------------------------------------------------------------------------------------
 
 
 def bulk_groups(indices: list[float]) -> list[str]:
@@ -183,6 +271,9 @@ def bulk_index(character: Character) -> float:
     return volume / character.height**3
 
 
+# --- the run -------------------------------------------------------------------------------------------------
+
+
 def run_evaluation(
     motions: list[Path],
     bodies: list[str | Path],
@@ -196,26 +287,45 @@ def run_evaluation(
     log: Callable[[str], None] | None = print,
     threads: int | None = MEASURE_THREADS,
     source_character: str | Path | None = None,
+    source_glb_body: str | Path | None = None,
 ) -> EvalTable:
     """Run ``methods`` (default: copy) on every motion x body and summarise.
 
     motions: BVH/glTF/FBX files; bodies: character files or ``builtin:<preset>``; ``max_frames``: first frames
     of each clip (after resampling to ``fps``; None: all); ``source_character``: the body performing the source
-    motions (default: the motion file's own mesh, or a built-in body sized to the source skeleton). Bodies are grouped by bulk index into thirds
-    (:func:`bulk_groups`; ``body_groups`` overrides: name -> group); a clip is a contact clip when at least
-    ``contact_fraction`` of its frames have a hand self-contact on the source body. Writes ``eval.json`` and
-    ``eval.md`` into ``out_dir`` when given. ``threads``: torch threads during the run (see
-    :data:`MEASURE_THREADS`)."""
+    motions (default: the motion file's own mesh, or a built-in body sized to the source skeleton);
+    ``source_glb_body``: first write each clip as a GLB on this body and use that as the motion (what a studio
+    sends; the judge's setting). Bodies are grouped by ``body_groups`` (name -> group) or by bulk index into
+    thirds (:func:`bulk_groups`); a clip is a contact clip when at least ``contact_fraction`` of its frames
+    have a hand self-contact on the source body. Writes ``eval.json`` and ``eval.md`` into ``out_dir`` when
+    given. ``threads``: torch threads during the run (see :data:`MEASURE_THREADS`)."""
+    methods = list(methods or ["copy"])
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; available: {sorted(METHODS)}")
     with torch_threads(threads):
-        return _run_evaluation(
-            motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups, log, source_character
-        )
+        return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups,
+                               log, source_character, source_glb_body)  # fmt: skip
+
+
+def source_as_glb(motion: Path, body: str | Path, out: Path, max_frames: int | None, fps: float | None) -> Path:
+    """``motion`` performed by ``body`` (copy retargeting), written as an animated GLB at ``out``."""
+    from retarget_core.copy_retarget import copy_retarget
+    from retarget_core.io.gltf_write import write_glb
+    from retarget_core.pipeline import prepare_source
+
+    src = prepare_source(JobInputs(motion, body, options=RetargetOptions(fps=fps)), max_frames)
+    tgt = load_character(body)
+    view = copy_retarget(src.motion, src.mapping, tgt.character.skeleton, tgt.mapping)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_glb(tgt.character, view, out, clip_name=src.motion.name)
+    return out
 
 
 def _run_evaluation(
     motions: list[Path],
     bodies: list[str | Path],
-    methods: list[str] | None,
+    methods: list[str],
     out_dir: Path | None,
     max_frames: int | None,
     fps: float | None,
@@ -223,17 +333,15 @@ def _run_evaluation(
     body_groups: dict[str, str] | None,
     log: Callable[[str], None] | None,
     source_character: str | Path | None,
+    source_glb_body: str | Path | None,
 ) -> EvalTable:
+    import tempfile
+
     from retarget_core.pipeline import prepare, refine
 
     started = time.perf_counter()
-    methods = list(methods or ["copy"])
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown:
-        raise ValueError(f"unknown method(s) {unknown}; available: {sorted(METHODS)}")
     order = ["copy"] + [m for m in methods if m != "copy"]
     say = log or (lambda _m: None)
-
     infos: list[BodyInfo] = []
     for b in bodies:
         tc = load_character(b).character
@@ -243,61 +351,57 @@ def _run_evaluation(
 
     rows: list[EvalRow] = []
     clips: list[ClipInfo] = []
+    scratch = tempfile.TemporaryDirectory(prefix="retarget-eval-")
     for path in motions:
+        if source_glb_body is not None:
+            path = source_as_glb(path, source_glb_body, Path(scratch.name) / f"{path.stem}.glb", max_frames, fps)
         clip_info: ClipInfo | None = None
+        src_acc: ClipAcceptance | None = None
         for b, info in zip(bodies, infos, strict=True):
             t = time.perf_counter()
-            inputs = JobInputs(path, b, source_character, method_options("copy", fps))
-            prepared = prepare(inputs, max_frames=max_frames)
+            prepared = prepare(JobInputs(path, b, source_character, method_options("copy", fps)), max_frames=max_frames)
             found = prepared.contacts
-            if clip_info is None:
-                motion = prepared.source.motion
-                contact_frames = int(found.self_contacts.frames_with_contact().sum())
-                enough = contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0
-                pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in found.self_contacts.summary()[:6]]
-                clip_info = ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps,
-                                     contact_frames=contact_frames, group="contact" if enough else "no-contact",
-                                     contacts=pairs)  # fmt: skip
+            if clip_info is None or src_acc is None:
+                clip_info = _clip_info(prepared, contact_fraction)
                 clips.append(clip_info)
-                say(f"{motion.name}: {motion.num_frames} frames, {contact_frames} with hand contacts ({clip_info.group})")
+                src_acc = measure_acceptance(prepared.source_body.character, prepared.source_body.mapping,
+                                             prepared.source_view)  # fmt: skip
+                say(f"{clip_info.name}: {clip_info.frames} frames, {clip_info.contact_frames} with hand contacts "
+                    f"({clip_info.group})")  # fmt: skip
+            tgt = prepared.target
+            copy_fig: AcceptanceFigures | None = None
             for m in order:
+                t_m = time.perf_counter()
                 after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
+                ms = 0.0 if after is None else 1000 * (time.perf_counter() - t_m) / prepared.before.num_frames
+                motion = prepared.before if after is None else after
+                fig = figures_from_measures(measure_acceptance(tgt.character, tgt.mapping, motion), src_acc)
                 p = prepared
                 job = measure_job(
-                    p.source_body.character, p.source_body.mapping, p.source_view, p.target.character,
-                    p.target.mapping, p.before, after, source_contacts=found, constraints=p.constraints,
-                    include_series=False, threads=None,
+                    p.source_body.character, p.source_body.mapping, p.source_view, tgt.character, tgt.mapping,
+                    p.before, after, source_contacts=found, constraints=p.constraints, include_series=False,
+                    threads=None,
                 )  # fmt: skip
-                rows.append(EvalRow(method=m, body=info.name, clip=clip_info.name, values=_summary_values(job.report, m)))
+                if copy_fig is None:
+                    copy_fig = fig
+                met = {k: c.met for k, c in meets_targets(fig, copy_fig).items()}
+                rows.append(EvalRow(method=m, body=info.name, clip=clip_info.name,
+                                    values={**_acceptance_values(fig), **_our_values(job.report, m)},
+                                    targets_met=met, ms_per_frame=round(ms, 3)))  # fmt: skip
             v = rows[-1].values
-            say(
-                f"  {info.name:>20}: {order[-1]} pen. verts {_fmt(v['penetrating_vertices_percent'])} %, "
-                f"max {_fmt(v['penetration_max_depth'])} cm ({time.perf_counter() - t:.1f}s)"
-            )
+            say(f"  {info.name:>20}: {order[-1]} pen %v {_fmt(v['pen_percent'])}, contact pres. "
+                f"{_fmt(v['contact_preservation'])}, foot acc. {_fmt(v['foot_accuracy'])} "
+                f"({time.perf_counter() - t:.1f}s)")  # fmt: skip
+    scratch.cleanup()
 
     body_group = {i.name: i.group for i in infos}
     clip_group = {c.name: c.group for c in clips}
-    groups: list[EvalGroup] = []
-    for m in order:
-        for bg in ("skinny", "medium", "bulky", "all"):
-            for cg in ("contact", "no-contact", "all"):
-                sel = [
-                    r
-                    for r in rows
-                    if r.method == m and bg in ("all", body_group[r.body]) and cg in ("all", clip_group[r.clip])
-                ]
-                if sel:
-                    groups.append(EvalGroup(method=m, bodies=bg, clips=cg, jobs=len(sel), values=_mean_values(sel)))
-    per_body = [
-        EvalGroup(method=m, bodies=i.name, clips="all", jobs=len(sel), values=_mean_values(sel))
-        for m in order
-        for i in sorted(infos, key=lambda x: x.bulk_index)
-        if (sel := [r for r in rows if r.method == m and r.body == i.name])
-    ]
+    body_order = [i.name for i in sorted(infos, key=lambda x: x.bulk_index)]
+    groups, per_body = group_rows(rows, order, body_group, clip_group, body_order)
     table = EvalTable(
         methods=order,
-        metrics=[n for n, _ in TABLE_METRICS],
-        labels=dict(TABLE_METRICS),
+        metrics=[n for n, _ in ACCEPTANCE_METRICS + OUR_METRICS],
+        labels=dict(ACCEPTANCE_METRICS + OUR_METRICS),
         bodies=sorted(infos, key=lambda x: x.bulk_index),
         clips=clips,
         rows=rows,
@@ -305,7 +409,8 @@ def _run_evaluation(
         per_body=per_body,
         seconds=round(time.perf_counter() - started, 2),
         settings={"max_frames": max_frames, "fps": fps, "contact_fraction": contact_fraction,
-                  "methods": {m: list(METHODS[m]) for m in order}},
+                  "source_glb_body": str(source_glb_body) if source_glb_body else None,
+                  "methods": {m: list(METHODS[m]) for m in order}},  # fmt: skip
     )
     say(table.to_markdown())
     if out_dir is not None:
@@ -313,21 +418,35 @@ def _run_evaluation(
     return table
 
 
+def _clip_info(prepared: Any, contact_fraction: float) -> ClipInfo:
+    motion = prepared.source.motion
+    sc = prepared.contacts.self_contacts
+    contact_frames = int(sc.frames_with_contact().sum())
+    enough = contact_frames >= contact_fraction * motion.num_frames and contact_frames > 0
+    pairs = [{k: e[k] for k in ("hand", "other", "frames")} for e in sc.summary()[:6]]
+    return ClipInfo(name=motion.name, frames=motion.num_frames, fps=motion.fps, contact_frames=contact_frames,
+                    group="contact" if enough else "no-contact", contacts=pairs)  # fmt: skip
+
+
 def write_eval_table(table: EvalTable, out_dir: Path) -> tuple[Path, Path]:
     """``eval.json`` and ``eval.md`` in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     js, md = out_dir / "eval.json", out_dir / "eval.md"
     js.write_text(json.dumps(table.model_dump(mode="json"), indent=1))
-    md.write_text("# Evaluation\n\n" + table.to_markdown())
+    md.write_text(f"# Evaluation\n\n{table.seconds:.0f} s in all.\n\n" + table.to_markdown())
     return js, md
 
 
 __all__ = [
+    "ACCEPTANCE_METRICS",
     "METHODS",
+    "OUR_METRICS",
     "EvalTable",
     "bulk_groups",
     "bulk_index",
+    "group_rows",
     "method_options",
     "run_evaluation",
+    "source_as_glb",
     "write_eval_table",
 ]
