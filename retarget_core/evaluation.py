@@ -47,6 +47,7 @@ from retarget_core.metrics.report import (
     SourceContacts,
     build_metrics_report,
 )
+from retarget_core.metrics.source import measure_source
 from retarget_core.motion import Motion
 
 Method = Callable[[LoadedMotion, LoadedCharacter], Motion]
@@ -183,15 +184,17 @@ def measure_job(
     context: dict[str, Any] | None = None,
     notes: list[str] | None = None,
     threads: int | None = MEASURE_THREADS,
+    measure_source_motion: bool = True,
 ) -> JobMeasurement:
     """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
     "after", against "before") on the target; ``reference`` is a ground-truth motion on the target if any.
     All motions must have the same frame count (the pipeline's motions do). ``threads``: torch threads
-    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting)."""
+    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting). ``measure_source_motion``:
+    also measure the source on its own body (the report's ``source``, its warnings in ``notes``)."""
     with torch_threads(threads):
         return _measure_job(
             source_body, source_mapping, source_view, target, target_mapping, before, after, reference,
-            source_contacts, include_series, context, notes,
+            source_contacts, include_series, context, notes, measure_source_motion,
         )  # fmt: skip
 
 
@@ -208,6 +211,7 @@ def _measure_job(
     include_series: bool,
     context: dict[str, Any] | None,
     notes: list[str] | None,
+    measure_source_motion: bool = True,
 ) -> JobMeasurement:
     lengths = {"source view": source_view.num_frames, "before": before.num_frames}
     if after is not None:
@@ -244,9 +248,13 @@ def _measure_job(
             reference=ref_measures, source_feet=found.feet,
         )  # fmt: skip
     timings["metrics"] = time.perf_counter() - t
+    t = time.perf_counter()
+    source = measure_source(source_body, source_mapping, source_view, part_sdf_for(source_body, source_mapping)[1],
+                            found.feet)[0] if measure_source_motion else None  # fmt: skip
+    timings["source"] = time.perf_counter() - t
     report = build_metrics_report(
         before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
-        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series,
+        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series, source,
     )  # fmt: skip
     return JobMeasurement(report, found, constraints, before_measures, after_measures)
 
@@ -497,7 +505,8 @@ def _run_evaluation(
             results = {m: METHODS[m](source, target) for m in order}
             t = time.perf_counter()
             copy_measure = measure_job(
-                body, body_map, view, tc, target.mapping, results["copy"], source_contacts=found, include_series=False
+                body, body_map, view, tc, target.mapping, results["copy"], source_contacts=found, include_series=False,
+                measure_source_motion=False,
             )
             rows.append(
                 EvalRow(
@@ -515,6 +524,7 @@ def _run_evaluation(
                     results[m],
                     source_contacts=found,
                     include_series=False,
+                    measure_source_motion=False,
                 )
                 rows.append(EvalRow(method=m, body=info.name, clip=motion.name, values=_summary_values(job.report, m)))
             v = rows[-len(order)].values

@@ -51,6 +51,9 @@ def build_metrics(result: Retargeted, include_series: bool = True) -> dict[str, 
         result.target.character, result.target.mapping, result.before, result.after,
         context=job_context(result), notes=list(result.warnings), include_series=include_series,
     )  # fmt: skip
+    # What came in broken joins the job's warnings (JobOutputs.warnings is this list).
+    source = measured.report.source
+    result.warnings.extend(w for w in (source.warnings if source else []) if w not in result.warnings)
     report: dict[str, Any] = measured.report.model_dump(mode="json")
     return report
 
