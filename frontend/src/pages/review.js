@@ -212,6 +212,7 @@ async function buildViewer(body, job, views, metrics) {
     chartsEl.appendChild(p);
   }
   renderSummary(body.querySelector('.summary'), metrics);
+  renderSourceQuality(body.querySelector('.view[data-view="source"] .view-box'), metrics.source);
   renderNotes(body.querySelector('.notes'), job, metrics);
 
   const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
@@ -261,7 +262,7 @@ async function buildViewer(body, job, views, metrics) {
       return out;
     },
     charts() {
-      return charts.map((c) => ({ id: c.data.id, hasData: c.hasData, points: Number(c.container.dataset.points), playhead: c.frame }));
+      return charts.map((c) => ({ id: c.data.id, hasData: c.hasData, points: Number(c.container.dataset.points), playhead: c.frame, mode: c.mode, parts: Boolean(c.data.parts) }));
     },
     seek(f) { timeline.pause(); timeline.seek(f); },
     play() { timeline.play(); },
@@ -345,6 +346,26 @@ function renderSummary(el, metrics) {
   el.innerHTML = `<h2>Summary</h2><table class="summary-table">
     <thead><tr><th></th><th style="color:${COLORS.before}">before</th><th style="color:${COLORS.after}">after</th><th>change</th></tr></thead>
     <tbody>${rows}</tbody></table>`;
+}
+
+/**
+ * The source pane's list of what came in broken (metrics' `source`: the source measured on its own body): the
+ * flags in words, and the figures on demand. Drawn over the bottom of the source view, so the layout stays.
+ */
+function renderSourceQuality(box, source) {
+  if (!box || !source) return;
+  const el = document.createElement('div');
+  el.className = `source-quality ${source.flags.length ? 'flagged' : 'clean'}`;
+  el.dataset.flags = String(source.flags.length);
+  const figures = source.figures.map((f) => `<li data-key="${esc(f.key)}">${esc(f.label)}: <b>${formatNumber(f.value)}</b> ${esc(f.unit)}</li>`).join('');
+  const head = source.flags.length
+    ? `⚠ ${source.flags.length} problem${source.flags.length > 1 ? 's' : ''} in the source itself (not caused by retargeting)`
+    : '✓ no problem found in the source';
+  el.innerHTML = `<details${source.flags.length ? ' open' : ''}><summary>${head}</summary>
+    <ul class="source-flags">${source.flags.map((f) => `<li data-flag="${esc(f.name)}">${esc(f.message)}</li>`).join('')}</ul>
+    <details class="source-figures"><summary>figures on ${esc(source.body ?? 'the source body')} (at 1.80 m)</summary><ul>${figures}</ul></details>
+  </details>`;
+  box.appendChild(el);
 }
 
 function renderNotes(el, job, metrics) {
