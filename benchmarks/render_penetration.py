@@ -35,7 +35,14 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 from retarget_core import rotations  # noqa: E402
 from retarget_core.body_parts import CLUSTERS  # noqa: E402
 from retarget_core.copy_retarget import copy_retarget  # noqa: E402
-from retarget_core.energy.sdf import effective_depth, geodesic_to_parts, sample_pairs, segment_matrices  # noqa: E402
+from retarget_core.energy.sdf import (  # noqa: E402
+    SDFParams,
+    build_part_sdf,
+    effective_depth,
+    geodesic_to_parts,
+    sample_pairs,
+    segment_matrices,
+)
 from retarget_core.evaluation import part_sdf_for  # noqa: E402
 from retarget_core.loading import load_character, load_motion  # noqa: E402
 from retarget_core.metrics.compute import MetricParams, measure_clip  # noqa: E402
@@ -153,7 +160,7 @@ def summary_lines(counted: Counted, cluster_of: np.ndarray, seg_cluster: np.ndar
     return lines, out
 
 
-def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int, out_dir: Path) -> dict:  # type: ignore[no-untyped-def]
+def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int, out_dir: Path, suffix: str = "") -> dict:  # type: ignore[no-untyped-def]
     k180 = 1.80 / character.height
     tol = MetricParams().penetration_tolerance_m / k180
     grot, gpos = motion.slice(frame, frame + 1).global_transforms()
@@ -198,10 +205,10 @@ def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int,
     pct = 100.0 * len(counted.vertex) / character.num_vertices
     title = (f"{clip} frame {frame} on {character.name}: {len(counted.vertex)} vertices counted ({pct:.2f} %), "
              f"in joint folds (< 3 cm along the surface from the part entered): {folds}")  # fmt: skip
-    fig.suptitle(title + "\n" + "; ".join(lines[:4]), fontsize=9)
+    fig.suptitle(title + (f" [fold band {suffix[9:]}]" if suffix else "") + "\n" + "; ".join(lines[:4]), fontsize=9)
     fig.subplots_adjust(left=0.01, right=0.99, top=0.84, bottom=0.1, wspace=0.08)
     out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"pen_{clip}_{character.name}_f{frame}.png"
+    path = out_dir / f"pen_{clip}_{character.name}_f{frame}{suffix}.png"
     fig.savefig(path)
     plt.close(fig)
     return {"clip": clip, "body": character.name, "frame": frame, "counted": len(counted.vertex),
@@ -229,6 +236,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs="*", default=[])
     ap.add_argument("--auto", type=int, default=0, help="also draw the N frames that count the most vertices")
     ap.add_argument("--max-frames", type=int, default=300)
+    ap.add_argument("--dead-zone-cm", type=float, default=None,
+                    help="the geodesic ramp's fold band (SDFParams.geodesic_dead_zone_m, cm at 1.80 m) to draw with; "
+                    "0 draws what the measure counted before the band existed")  # fmt: skip
     ap.add_argument("-o", "--out-dir", type=Path, default=Path("benchmarks/results"))
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -238,13 +248,17 @@ def main() -> None:
         tgt = load_character(body)
         ch = tgt.character
         parts, sdf = part_sdf_for(ch, tgt.mapping)
+        suffix = ""
+        if args.dead_zone_cm is not None:
+            sdf = build_part_sdf(ch, parts, SDFParams(geodesic_dead_zone_m=args.dead_zone_cm / 100.0))
+            suffix = f"_deadzone{args.dead_zone_cm:g}cm"
         motion = copy_retarget(source, loaded.mapping, ch.skeleton, tgt.mapping)
         geodesic = rest_geodesic(ch, parts, 2 * FOLD_BAND_M * ch.height / 1.80)
         frames = list(args.frames)
         if args.auto:
             frames += [f for f in pick_frames(ch, tgt.mapping, sdf, motion, args.auto) if f not in frames]
         for f in frames:
-            print(json.dumps(render_frame(args.motion.stem, ch, parts, sdf, geodesic, motion, f, args.out_dir)))
+            print(json.dumps(render_frame(args.motion.stem, ch, parts, sdf, geodesic, motion, f, args.out_dir, suffix)))
 
 
 if __name__ == "__main__":

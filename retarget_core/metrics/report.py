@@ -152,8 +152,9 @@ class SourceMetrics(BaseModel):
     foot_slide_frames_percent: float | None = Field(description="floor frames of a foot sliding more than 1 cm/frame")
     ground_penetration_mean: Measure = Field(description="mean over frames of the lowest vertex below y = 0")
     ground_below_frames_percent: float = Field(description="frames whose lowest vertex is more than 1 cm below y = 0")
-    foot_float_mean: Measure = Field(description="mean height of the lowest foot vertex on planted frames")
+    foot_float_mean: Measure = Field(description="mean height of the lowest foot vertex on frames with a planted toe")
     jerk: Measure = Field(description="mean joint jerk at 30 fps (cm/frame^3)")
+    jerk_to_acceleration: float | None = Field(None, description="mean jerk over mean acceleration (noise: 1.83)")
     flags: list[SourceFlag] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list, description="the flags' messages (also in the report's notes)")
 

@@ -430,3 +430,19 @@ def test_source_warnings_reach_the_report_and_its_notes(average_body) -> None:
     assert report.notes == ["a pipeline note", *warnings] and warnings
     again = MetricsReport.model_validate_json(report.model_dump_json())
     assert again.source is not None and again.source.flags[0].name == "hand_inside_body"
+
+
+def test_a_jittering_source_is_flagged_as_jitter(average_body) -> None:
+    """3 mm of noise on the root (every joint shakes with it): jerk far above the threshold and 1.8 times the
+    acceleration, the signature of noise; nothing else is flagged."""
+    from retarget_core.metrics.source import measure_source
+
+    ch, mapping, sdf = average_body
+    still = _source_clip(ch, ch.skeleton.rest_rotations, 30, 0.0)
+    trans = still.translations.clone()
+    trans[:, 0] += 0.003 * torch.randn(trans[:, 0].shape, generator=torch.Generator().manual_seed(0))
+    shaky = Motion(ch.skeleton, 30.0, still.rotations, trans, "shaky")
+    metrics, warnings = measure_source(ch, mapping, shaky, sdf, _feet(ch, mapping, shaky))
+    assert metrics.jerk_to_acceleration == pytest.approx(1.83, abs=0.2)
+    assert [f.name for f in metrics.flags] == ["jitter"], metrics.flags
+    assert "jitters" in warnings[0]
