@@ -29,7 +29,7 @@ from retarget_core.source_body import source_body_for
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 FIGURES = ("hand_inside_frames_percent", "hand_depth_max", "foot_skate", "foot_slide", "foot_slide_frames_percent",
-           "ground_below_frames_percent", "ground_penetration_mean", "foot_float_mean", "jerk")  # fmt: skip
+           "ground_below_frames_percent", "ground_penetration_mean", "foot_float_mean", "jerk", "jerk_to_acceleration")  # fmt: skip
 
 
 def jittered(motion: Motion, position_m: float, angle_deg: float, seed: int = 0) -> Motion:
