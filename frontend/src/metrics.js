@@ -192,6 +192,16 @@ export function partSeries(report) {
   return out.before || out.after ? out : null;
 }
 
+/** Short names of the source flags (metrics/source.py) for the source pane's list. */
+const SOURCE_FLAG_LABELS = {
+  hand_inside_body: 'hand inside the body',
+  foot_skate: 'planted feet skate',
+  foot_slide: 'feet slide on the floor',
+  below_floor: 'below the floor',
+  floats: 'feet above the floor',
+  jitter: 'jitter',
+};
+
 /** Labels and units of the source figures the source pane lists (metrics' `source`, see docs/metrics.md). */
 const SOURCE_FIGURES = [
   ['hand_inside_frames_percent', 'hand > 1 cm inside the body', '% of frames'],
@@ -205,14 +215,22 @@ const SOURCE_FIGURES = [
 ];
 
 /**
- * What the metrics say about the source on its own body: {body, flags: [{name, message}], figures:
+ * What the metrics say about the source on its own body: {body, flags: [{name, label, value, threshold, unit,
+ * message}], figures:
  * [{key, label, value, unit}]} or null (older jobs have no `source`).
  */
 export function sourceQuality(report) {
   const src = report?.source;
   if (!isObj(src)) return null;
   const flags = Array.isArray(src.flags)
-    ? src.flags.filter((f) => isObj(f) && typeof f.message === 'string').map((f) => ({ name: String(f.name ?? ''), message: f.message }))
+    ? src.flags.filter((f) => isObj(f) && typeof f.message === 'string').map((f) => ({
+      name: String(f.name ?? ''),
+      label: SOURCE_FLAG_LABELS[f.name] ?? String(f.name ?? '').replace(/_/g, ' '),
+      value: isNum(f.value) ? f.value : null,
+      threshold: isNum(f.threshold) ? f.threshold : null,
+      unit: String(f.unit ?? ''),
+      message: f.message,
+    }))
     : [];
   const figures = [];
   for (const [key, label, unit] of SOURCE_FIGURES) {

@@ -157,7 +157,7 @@ test('the source measured on its own body: flags in words and figures', async ()
   };
   const q = sourceQuality(r);
   assert.equal(q.body, 'mh_male_average');
-  assert.deepEqual(q.flags, [{ name: 'hand_inside_body', message: 'a hand is inside' }]);
+  assert.deepEqual(q.flags, [{ name: 'hand_inside_body', label: 'hand inside the body', value: 40, threshold: 10, unit: '% of frames', message: 'a hand is inside' }]);
   const keys = q.figures.map((f) => f.key);
   assert.deepEqual(keys, ['hand_inside_frames_percent', 'hand_depth_max', 'jerk'], 'figures without a value are left out');
   assert.equal(q.figures[1].value, 3, 'lengths at 1.80 m');

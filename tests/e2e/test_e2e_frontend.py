@@ -445,7 +445,8 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     if page.evaluate("window.__viewer.views().source.loaded"):
         pane = page.locator('.view[data-view="source"] .source-quality')
         assert pane.get_attribute("data-flags") == "1"
-        assert SOURCE_FLAG in pane.inner_text()
+        item = pane.locator('[data-flag="hand_inside_body"]')
+        assert item.get_attribute("title") == SOURCE_FLAG and "hand inside the body: 35" in item.inner_text()
         page.locator('.view[data-view="source"]').screenshot(path=str(artifacts / "08-source-pane-flags.png"))
     assert not page.errors, page.errors
 

@@ -362,7 +362,7 @@ function renderSourceQuality(box, source) {
     ? `⚠ ${source.flags.length} problem${source.flags.length > 1 ? 's' : ''} in the source itself (not caused by retargeting)`
     : '✓ no problem found in the source';
   el.innerHTML = `<details${source.flags.length ? ' open' : ''}><summary>${head}</summary>
-    <ul class="source-flags">${source.flags.map((f) => `<li data-flag="${esc(f.name)}">${esc(f.message)}</li>`).join('')}</ul>
+    <ul class="source-flags">${source.flags.map((f) => `<li data-flag="${esc(f.name)}" title="${esc(f.message)}">${esc(f.label)}${f.value === null ? '' : `: <b>${formatNumber(f.value)}</b> ${esc(f.unit)}`}${f.threshold === null ? '' : ` (over ${formatNumber(f.threshold)})`}</li>`).join('')}</ul>
     <details class="source-figures"><summary>figures on ${esc(source.body ?? 'the source body')} (at 1.80 m)</summary><ul>${figures}</ul></details>
   </details>`;
   box.appendChild(el);
