@@ -55,8 +55,8 @@ def main() -> None:
     from retarget_core.copy_retarget import copy_retarget
     from retarget_core.energy.sdf import build_part_sdf, sample_pairs, segment_matrices, vertex_depths
     from retarget_core.energy.terms import interpenetration_energy, vertex_contact_energy
-    from retarget_core.measure import SourceContactResult, source_contacts_model
     from retarget_core.loading import load_character, load_motion
+    from retarget_core.measure import SourceContactResult, source_contacts_model
     from retarget_core.metrics.compute import measure_clip, summarize
     from retarget_core.metrics.report import build_metrics_report, write_metrics_json
     from retarget_core.resample import resample

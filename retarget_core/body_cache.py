@@ -108,9 +108,15 @@ def body_assets(character: Character, mapping: JointMapping) -> tuple[BodyAssets
     return _remember(BodyAssets(key, parts, sdf)), False
 
 
+def part_sdf_for(character: Character, mapping: JointMapping) -> tuple[BodyParts, PartSDF]:
+    """The body's parts and SDF grids (cached, see :func:`body_assets`)."""
+    assets = body_assets(character, mapping)[0]
+    return assets.parts, assets.sdf
+
+
 def clear_memory() -> None:
     """Forget the in-process entries (tests; the disk cache stays)."""
     _MEMORY.clear()
 
 
-__all__ = ["BodyAssets", "body_assets", "cache_dir", "character_key", "clear_memory"]
+__all__ = ["BodyAssets", "body_assets", "cache_dir", "character_key", "clear_memory", "part_sdf_for"]

@@ -380,7 +380,7 @@ def _run_evaluation(
                 job = measure_job(
                     p.source_body.character, p.source_body.mapping, p.source_view, tgt.character, tgt.mapping,
                     p.before, after, source_contacts=found, constraints=p.constraints, include_series=False,
-                    threads=None,
+                    threads=None, measure_source_motion=False,
                 )  # fmt: skip
                 if copy_fig is None:
                     copy_fig = fig

@@ -36,6 +36,7 @@ from retarget_core.metrics.report import (
     SourceContacts,
     build_metrics_report,
 )
+from retarget_core.metrics.source import measure_source
 from retarget_core.motion import Motion
 
 MEASURE_THREADS = 1
@@ -136,16 +137,18 @@ def measure_job(
     context: dict[str, Any] | None = None,
     notes: list[str] | None = None,
     threads: int | None = MEASURE_THREADS,
+    measure_source_motion: bool = True,
 ) -> JobMeasurement:
     """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
     "after", against "before") on the target; ``constraints``: the contacts already carried to the target
     (default: carried here); ``reference`` is a ground-truth motion on the target if any.
     All motions must have the same frame count (the pipeline's motions do). ``threads``: torch threads
-    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting)."""
+    while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting). ``measure_source_motion``:
+    also measure the source on its own body (the report's ``source``, its warnings in ``notes``)."""
     with torch_threads(threads):
         return _measure_job(
             source_body, source_mapping, source_view, target, target_mapping, before, after, reference,
-            source_contacts, constraints, include_series, context, notes,
+            source_contacts, constraints, include_series, context, notes, measure_source_motion,
         )  # fmt: skip
 
 
@@ -163,6 +166,7 @@ def _measure_job(
     include_series: bool,
     context: dict[str, Any] | None,
     notes: list[str] | None,
+    measure_source_motion: bool,
 ) -> JobMeasurement:
     lengths = {"source view": source_view.num_frames, "before": before.num_frames}
     if after is not None:
@@ -196,9 +200,15 @@ def _measure_job(
             reference=ref_measures, source_feet=found.feet,
         )  # fmt: skip
     timings["metrics"] = time.perf_counter() - t
+    t = time.perf_counter()
+    source = None
+    if measure_source_motion:
+        source_sdf = body_assets(source_body, source_mapping)[0].sdf
+        source = measure_source(source_body, source_mapping, source_view, source_sdf, found.feet)[0]
+    timings["source"] = time.perf_counter() - t
     report = build_metrics_report(
         before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
-        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series,
+        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series, source,
     )  # fmt: skip
     return JobMeasurement(report, found, constraints, before_measures, after_measures)
 

@@ -52,6 +52,9 @@ def build_metrics(result: Retargeted, include_series: bool = True) -> dict[str, 
         p.before, result.after, source_contacts=p.contacts, constraints=p.constraints,
         context=job_context(result), notes=list(result.warnings), include_series=include_series, threads=None,
     )  # fmt: skip
+    # What came in broken joins the job's warnings (JobOutputs.warnings is this list).
+    source = measured.report.source
+    result.warnings.extend(w for w in (source.warnings if source else []) if w not in result.warnings)
     report: dict[str, Any] = measured.report.model_dump(mode="json")
     return report
 

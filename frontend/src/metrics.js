@@ -20,12 +20,23 @@ export const CHARTS = [
   { id: 'skate', title: 'Foot skate', keys: ['foot_skate'] },
 ];
 
+/** Body parts of the per-part penetration split (metrics' penetrating_vertices_percent_<part>), with colours. */
+export const PARTS = [
+  { id: 'head', label: 'head', color: '#b07cd8' },
+  { id: 'torso', label: 'torso', color: '#e67e22' },
+  { id: 'left_arm', label: 'left arm', color: '#2e86de' },
+  { id: 'right_arm', label: 'right arm', color: '#00b8b8' },
+  { id: 'left_leg', label: 'left leg', color: '#27ae60' },
+  { id: 'right_leg', label: 'right leg', color: '#c4d936' },
+];
+
 /** Human labels of summary fields; fields not listed are still shown, with their key as label. */
 export const SUMMARY_LABELS = {
   penetration_max_depth: 'Penetration, deepest',
   penetration_mean_depth: 'Penetration, mean of per-frame max',
   penetration_volume: 'Penetration volume',
   penetrating_vertices_percent: 'Penetrating vertices',
+  penetrating_vertices_percent_by_part: 'Penetrating vertices',
   penetrating_frames_percent: 'Frames with penetration',
   contact_pairs: 'Contact vertex pairs',
   contact_frames: 'Frames with contacts',
@@ -51,7 +62,8 @@ export const SUMMARY_LABELS = {
 const HIGHER_IS_BETTER = new Set(['contact_satisfied_percent', 'foot_contact_accuracy']);
 /** Summary fields that are context, not quality (no colouring). */
 const NEUTRAL = new Set(['frames', 'fps', 'contact_pairs', 'contact_frames', 'foot_contact_frames', 'mpjpe']);
-const PERCENT = new Set(['penetrating_vertices_percent', 'penetrating_frames_percent', 'contact_satisfied_percent']);
+const PERCENT = new Set(['penetrating_vertices_percent', 'penetrating_frames_percent', 'contact_satisfied_percent',
+  'penetrating_vertices_percent_by_part']);
 
 const isObj = (v) => v != null && typeof v === 'object' && !Array.isArray(v);
 const isNum = (v) => typeof v === 'number' && Number.isFinite(v);
@@ -106,19 +118,43 @@ export function summaryRows(report) {
   }
   const order = Object.keys(SUMMARY_LABELS);
   keys.sort((a, b) => (order.indexOf(a) + 1 || 999) - (order.indexOf(b) + 1 || 999));
-  return keys.map((key) => {
-    const b = readMeasure(key, before?.[key]);
-    const a = readMeasure(key, after?.[key]);
-    const delta = b.value !== null && a.value !== null ? a.value - b.value : null;
-    let verdict = null;
-    if (delta !== null && !NEUTRAL.has(key)) {
-      const eps = 1e-9 + 1e-6 * Math.max(Math.abs(a.value), Math.abs(b.value));
-      if (Math.abs(delta) <= eps) verdict = 'same';
-      else verdict = (delta < 0) !== HIGHER_IS_BETTER.has(key) ? 'better' : 'worse';
-    }
-    const unit = b.unit || a.unit || (PERCENT.has(key) ? '%' : '');
-    return { key, label: SUMMARY_LABELS[key] ?? key.replace(/_/g, ' '), unit, before: b.value, after: a.value, delta, verdict };
+  return keys.flatMap((key) => (isSplit(before?.[key]) || isSplit(after?.[key])
+    ? splitRows(key, before?.[key], after?.[key])
+    : [row(key, before?.[key], after?.[key])]));
+}
+
+/** A summary field that is a split by name ({head: 0.1, torso: 0.2, ...}), not a Measure. */
+function isSplit(raw) {
+  return isObj(raw) && !('value' in raw) && !('value_at_180' in raw) && Object.values(raw).some(isNum);
+}
+
+/** One row per entry of a split field (key "<field>.<part>"), in PARTS order first. */
+function splitRows(key, before, after) {
+  const names = [];
+  for (const k of [...Object.keys(before ?? {}), ...Object.keys(after ?? {})]) if (!names.includes(k)) names.push(k);
+  const order = PARTS.map((p) => p.id);
+  names.sort((a, b) => (order.indexOf(a) + 1 || 999) - (order.indexOf(b) + 1 || 999));
+  const base = SUMMARY_LABELS[key] ?? key.replace(/_/g, ' ');
+  return names.map((n) => {
+    const r = row(key, isObj(before) ? before[n] : undefined, isObj(after) ? after[n] : undefined);
+    const part = PARTS.find((p) => p.id === n);
+    return { ...r, key: `${key}.${n}`, label: `${base}, ${part ? part.label : n.replace(/_/g, ' ')}`, part: n };
   });
+}
+
+/** One before | after row of summary field `key`. */
+function row(key, rawBefore, rawAfter) {
+  const b = readMeasure(key, rawBefore);
+  const a = readMeasure(key, rawAfter);
+  const delta = b.value !== null && a.value !== null ? a.value - b.value : null;
+  let verdict = null;
+  if (delta !== null && !NEUTRAL.has(key)) {
+    const eps = 1e-9 + 1e-6 * Math.max(Math.abs(a.value), Math.abs(b.value));
+    if (Math.abs(delta) <= eps) verdict = 'same';
+    else verdict = (delta < 0) !== HIGHER_IS_BETTER.has(key) ? 'better' : 'worse';
+  }
+  const unit = b.unit || a.unit || (PERCENT.has(key) ? '%' : '');
+  return { key, label: SUMMARY_LABELS[key] ?? key.replace(/_/g, ' '), unit, before: b.value, after: a.value, delta, verdict };
 }
 
 /** The per-frame series of one chart for before and after (either may be null). */
@@ -136,6 +172,72 @@ export function chartData(report, chart) {
     }
   }
   return out;
+}
+
+/**
+ * The per-part split of penetrating vertices for the penetration chart: {unit, before: {part: series},
+ * after: {part: series}} from series penetrating_vertices_percent_<part>; null when no part has data.
+ */
+export function partSeries(report) {
+  const out = { unit: '%', before: null, after: null };
+  for (const name of ['before', 'after']) {
+    const series = methodOf(report, name)?.series;
+    const got = {};
+    for (const p of PARTS) {
+      const s = readSeries(series?.[`penetrating_vertices_percent_${p.id}`]);
+      if (s) got[p.id] = s;
+    }
+    if (Object.keys(got).length) out[name] = got;
+  }
+  return out.before || out.after ? out : null;
+}
+
+/** Short names of the source flags (metrics/source.py) for the source pane's list. */
+const SOURCE_FLAG_LABELS = {
+  hand_inside_body: 'hand inside the body',
+  foot_skate: 'planted feet skate',
+  foot_slide: 'feet slide on the floor',
+  below_floor: 'below the floor',
+  floats: 'feet above the floor',
+  jitter: 'jitter',
+};
+
+/** Labels and units of the source figures the source pane lists (metrics' `source`, see docs/metrics.md). */
+const SOURCE_FIGURES = [
+  ['hand_inside_frames_percent', 'hand > 1 cm inside the body', '% of frames'],
+  ['hand_depth_max', 'deepest hand', ''],
+  ['foot_skate', 'planted-foot skate', ''],
+  ['foot_slide_frames_percent', 'feet sliding on the floor', '% of floor frames'],
+  ['ground_below_frames_percent', 'below the floor > 1 cm', '% of frames'],
+  ['foot_float_mean', 'feet above the floor', ''],
+  ['jerk', 'jerk', ''],
+  ['penetrating_vertices_percent', 'penetrating vertices', '%'],
+];
+
+/**
+ * What the metrics say about the source on its own body: {body, flags: [{name, label, value, threshold, unit,
+ * message}], figures:
+ * [{key, label, value, unit}]} or null (older jobs have no `source`).
+ */
+export function sourceQuality(report) {
+  const src = report?.source;
+  if (!isObj(src)) return null;
+  const flags = Array.isArray(src.flags)
+    ? src.flags.filter((f) => isObj(f) && typeof f.message === 'string').map((f) => ({
+      name: String(f.name ?? ''),
+      label: SOURCE_FLAG_LABELS[f.name] ?? String(f.name ?? '').replace(/_/g, ' '),
+      value: isNum(f.value) ? f.value : null,
+      threshold: isNum(f.threshold) ? f.threshold : null,
+      unit: String(f.unit ?? ''),
+      message: f.message,
+    }))
+    : [];
+  const figures = [];
+  for (const [key, label, unit] of SOURCE_FIGURES) {
+    const m = readMeasure(key, src[key]);
+    if (m.value !== null) figures.push({ key, label, value: m.value, unit: unit || m.unit });
+  }
+  return { body: typeof src.body === 'string' ? src.body : null, flags, figures };
 }
 
 /** Parallel arrays of equal length from an object of arrays, or null. */
@@ -226,6 +328,8 @@ export function readMetrics(report) {
   const frames = ok ? (isNum(report.frames) ? report.frames : isNum(report.source?.frames) ? report.source.frames : null) : null;
   const fps = ok ? (isNum(report.fps) ? report.fps : isNum(report.source?.fps) ? report.source.fps : null) : null;
   const charts = CHARTS.map((c) => chartData(ok ? report : null, c));
+  const parts = ok ? partSeries(report) : null;
+  if (parts) charts.find((c) => c.id === 'penetration').parts = parts;
   const sc = ok && isObj(report.source_contacts) ? report.source_contacts : {};
   const pairs = Array.isArray(sc.pairs)
     ? sc.pairs.filter((p) => isObj(p) && typeof p.hand === 'string' && typeof p.other === 'string'
@@ -250,6 +354,7 @@ export function readMetrics(report) {
     penetration: { before: penetration(before), after: penetration(after) },
     mapping: { source: ok ? mappingOf(report, 'source') : null, target: ok ? mappingOf(report, 'target') : null },
     stages: ok ? stageReports(report.context) : [],
+    source: ok ? sourceQuality(report) : null,
     notes: ok ? [...(Array.isArray(report.notes) ? report.notes : []), ...(Array.isArray(report.warnings) ? report.warnings : [])].map(String) : [],
   };
 }

@@ -129,3 +129,52 @@ test('stage reports come in pipeline order with their own figures', async () => 
   assert.deepEqual(stageReports(null), []);
   assert.deepEqual(stageReports({ stage_reports: 'nope' }), []);
 });
+
+test('the per-part penetration split: summary rows per part and series for the penetration chart', async () => {
+  const { PARTS, partSeries } = await import('../src/metrics.js');
+  const r = report10();
+  r.before.summary.penetrating_vertices_percent_by_part = { head: 1.5, torso: 0, left_arm: 0.25, right_arm: 0, left_leg: 0, right_leg: 0 };
+  r.after.summary.penetrating_vertices_percent_by_part = { head: 0.5, torso: 0, left_arm: 0.5, right_arm: 0, left_leg: 0, right_leg: 0 };
+  r.before.series.penetrating_vertices_percent_head = { unit: '%', values: [0, 1, 2, 3, 0, 0, 0, 0, 0, 0] };
+  r.before.series.penetrating_vertices_percent_left_arm = { unit: '%', values: [0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0] };
+  r.after.series.penetrating_vertices_percent_head = { unit: '%', values: [0, 0.5, 1, 1, 0, 0, 0, 0, 0, 0] };
+  const rows = summaryRows(r).filter((x) => x.key.startsWith('penetrating_vertices_percent_by_part.'));
+  assert.deepEqual(rows.map((x) => x.part), PARTS.map((p) => p.id), 'one row per part, in body order');
+  const head = rows[0];
+  assert.equal(head.label, 'Penetrating vertices, head');
+  assert.equal(head.unit, '%');
+  assert.equal(head.before, 1.5);
+  assert.equal(head.after, 0.5);
+  assert.equal(head.verdict, 'better');
+  assert.equal(rows[2].verdict, 'worse');
+  const parts = partSeries(r);
+  assert.deepEqual(Object.keys(parts.before), ['head', 'left_arm']);
+  assert.deepEqual(Object.keys(parts.after), ['head']);
+  assert.equal(parts.after.head.values[2], 1);
+  const m = readMetrics(r);
+  assert.equal(m.charts[0].id, 'penetration');
+  assert.equal(m.charts[0].parts.before.head.count, 10);
+  assert.equal(m.charts[1].parts, undefined, 'only the penetration chart has parts');
+  assert.equal(partSeries(report10()), null, 'no split series: no parts');
+  assert.equal(readMetrics(report10()).charts[0].parts, undefined);
+});
+
+test('the source measured on its own body: flags in words and figures', async () => {
+  const { sourceQuality } = await import('../src/metrics.js');
+  const r = report10();
+  assert.equal(readMetrics(r).source, null, 'older jobs have no source section');
+  r.source = {
+    body: 'mh_male_average', frames: 10, fps: 30,
+    hand_inside_frames_percent: 40, hand_depth_max: measure(1.5),
+    foot_skate: measure(null, 'cm/frame'), foot_slide_frames_percent: null, jerk: measure(0.1, 'cm/frame^3'),
+    flags: [{ name: 'hand_inside_body', value: 40, threshold: 10, unit: '% of frames', message: 'a hand is inside' }, { name: 'bad' }],
+  };
+  const q = sourceQuality(r);
+  assert.equal(q.body, 'mh_male_average');
+  assert.deepEqual(q.flags, [{ name: 'hand_inside_body', label: 'hand inside the body', value: 40, threshold: 10, unit: '% of frames', message: 'a hand is inside' }]);
+  const keys = q.figures.map((f) => f.key);
+  assert.deepEqual(keys, ['hand_inside_frames_percent', 'hand_depth_max', 'jerk'], 'figures without a value are left out');
+  assert.equal(q.figures[1].value, 3, 'lengths at 1.80 m');
+  assert.equal(q.figures[0].unit, '% of frames');
+  assert.deepEqual(readMetrics(r).source, q);
+});

@@ -21,9 +21,10 @@ Choices where the papers leave room (all lengths given at a 1.80 m character and
   (paper 2 uses 0.1 shoulder heights, which lets the rest body shorten distances 14 cm away);
 - penetration depth of a vertex into a segment is measured beyond what the same vertex already has in the
   bind pose (bodies whose thighs or arms touch at rest are not penalised for that), and is weighted by a
-  geodesic ramp ``min(1, g / 10 cm)`` where ``g`` is the geodesic distance on the rest mesh from the vertex to
-  the segment. This stands in for paper 1's geodesic weights w_ri (its eq. 5): penetration close to a joint
-  (armpit, crotch, neck) counts little, penetration between distant parts counts fully.
+  geodesic ramp ``clamp((g - 3 cm) / (10 cm - 3 cm), 0, 1)`` where ``g`` is the geodesic distance on the rest
+  mesh from the vertex to the segment. This stands in for paper 1's geodesic weights w_ri (its eq. 5):
+  penetration in a joint fold (armpit, crotch, the neck's crease: within 3 cm of the segment, the band the
+  acceptance measure leaves out) does not count, close to it counts little, between distant parts fully.
 """
 
 from __future__ import annotations
@@ -55,6 +56,11 @@ class SDFParams:
     margin_m: float = 0.03
     blend_m: float = 0.02
     geodesic_ramp_m: float = 0.10
+    # Joint folds: a vertex this close along the rest mesh to a segment is in the fold between them (armpit,
+    # crotch, the neck's crease); LBS sinks such skin into the neighbour at every bend, which no one calls a
+    # penetration. 3 cm is the band the acceptance measure leaves out (../shared/ACCEPTANCE.md); the ramp then
+    # rises from 0 here to 1 at geodesic_ramp_m. Renders: benchmarks/results/pen_*.png.
+    geodesic_dead_zone_m: float = 0.03
     sample_spacing_m: float = 0.02
     cluster_m: float = 0.04
 
@@ -170,6 +176,12 @@ def geodesic_to_parts(vertices: np.ndarray, faces: np.ndarray, vertex_part: np.n
     return out
 
 
+def geodesic_ramp(geodesic: np.ndarray, dead_zone: float, ramp: float) -> np.ndarray:
+    """Weight in 0..1 of a penetration at rest-surface distance ``geodesic`` (any shape, m) from the segment it
+    enters: 0 up to ``dead_zone`` (joint folds), rising linearly to 1 at ``ramp`` and beyond (``inf`` gives 1)."""
+    return np.clip((geodesic - dead_zone) / max(ramp - dead_zone, 1e-12), 0.0, 1.0)
+
+
 def build_part_sdf(character: Character, parts: BodyParts, params: SDFParams | None = None) -> PartSDF:
     """Precompute the grids of every segment of ``character`` (seconds for a 13k-vertex body)."""
     params = params or SDFParams()
@@ -208,7 +220,7 @@ def build_part_sdf(character: Character, parts: BodyParts, params: SDFParams | N
         sizes.append(size)
     allowed = parts.collision_mask(ignore_arm_chest=False)
     geo = geodesic_to_parts(verts, faces, parts.vertex_part.numpy(), parts.num_parts, params.geodesic_ramp_m * s)
-    geo_w = torch.from_numpy(np.clip(geo / (params.geodesic_ramp_m * s), 0.0, 1.0)).float()
+    geo_w = torch.from_numpy(geodesic_ramp(geo, params.geodesic_dead_zone_m * s, params.geodesic_ramp_m * s)).float()
     sdf = PartSDF(
         parts=parts,
         grids=grids,
@@ -395,6 +407,7 @@ __all__ = [
     "build_part_sdf",
     "distance_matrix",
     "effective_depth",
+    "geodesic_ramp",
     "geodesic_to_parts",
     "sample_pairs",
     "segment_distance",

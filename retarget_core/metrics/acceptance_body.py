@@ -168,8 +168,8 @@ def build_acceptance_body(character: Character, mapping: JointMapping) -> Accept
         closed.append(_close_part(name, verts, pf) if len(pf) else None)
 
     def seg_vertices(names: tuple[str, ...]) -> np.ndarray:
-        idx = [parts.find(n) for n in names]
-        idx = [i for i in idx if i is not None]
+        found = [parts.find(n) for n in names]
+        idx = [i for i in found if i is not None]
         return np.nonzero(np.isin(vertex_seg, idx))[0]
 
     hands = {"left": seg_vertices(("LeftHand",)), "right": seg_vertices(("RightHand",))}

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from retarget_core.body_parts import END_EFFECTOR_SEGMENTS, BodyParts
+from retarget_core.body_parts import CLUSTERS, END_EFFECTOR_SEGMENTS, BodyParts
 from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints
@@ -54,6 +54,8 @@ class ClipMeasures:
     lowest_vertex: ``(F,)`` height of the lowest vertex (m).
     contact_distance: ``(M,)`` distance of each contact constraint's vertex pair (m); contact_frame ``(M,)``.
     feet: foot contacts detected on this motion.
+    vertex_cluster: ``(V,)`` index into :data:`CLUSTERS` of each vertex's part (its dominant segment's
+        cluster), for the per-part penetration split; None when not known.
     """
 
     name: str
@@ -69,6 +71,7 @@ class ClipMeasures:
     contact_distance: Tensor
     contact_frame: Tensor
     feet: FootContacts
+    vertex_cluster: Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -141,8 +144,39 @@ def measure_clip(
     return ClipMeasures(
         motion.name, motion.fps, character.height, v_n, names, gpos[:, idx], depth, volume, limb, lowest - ground,
         torch.cat(c_dist) if c_dist else torch.zeros(0), torch.cat(c_frame) if c_frame else torch.zeros(0, dtype=torch.long),
-        feet,
+        feet, vertex_part_clusters(parts),
     )  # fmt: skip
+
+
+# --- penetration per body part (issue 8, part 2) -------------------------------------------------------------
+
+
+def vertex_part_clusters(parts: BodyParts) -> Tensor:
+    """``(V,)`` index into :data:`CLUSTERS` of every vertex (the cluster of its dominant segment)."""
+    return torch.tensor(parts.cluster, dtype=torch.long).index_select(0, parts.vertex_part)
+
+
+def penetration_by_part(vertex_depth: Tensor, vertex_cluster: Tensor, tolerance: float) -> Tensor:
+    """``(F, 6)`` per frame and part (:data:`CLUSTERS` order): the share (%) of ALL vertices that belong to that
+    part and are deeper than ``tolerance`` (m), so the six columns add up to the frame's penetrating share."""
+    f_n, v_n = vertex_depth.shape
+    if v_n == 0:
+        return torch.zeros(f_n, len(CLUSTERS))
+    hot = (vertex_depth > tolerance).float()  # (F, V)
+    counts = torch.zeros(f_n, len(CLUSTERS)).index_add_(1, vertex_cluster, hot)
+    return counts * (100.0 / v_n)
+
+
+def part_split(m: ClipMeasures, tolerance: float) -> tuple[dict[str, float] | None, dict[str, Series]]:
+    """The summary ``penetrating_vertices_percent_by_part`` (mean over frames per part) and its per-frame
+    series ``penetrating_vertices_percent_<part>``; ``(None, {})`` when the vertices' parts are not known."""
+    if m.vertex_cluster is None:
+        return None, {}
+    per_frame = penetration_by_part(m.vertex_depth, m.vertex_cluster, tolerance)
+    means = per_frame.mean(0) if m.num_frames else torch.zeros(len(CLUSTERS))
+    summary = {name: round(float(means[c]), 4) for c, name in enumerate(CLUSTERS)}
+    series = {f"penetrating_vertices_percent_{name}": _series(per_frame[:, c], "%") for c, name in enumerate(CLUSTERS)}
+    return summary, series
 
 
 def _mean(x: Tensor) -> float | None:
@@ -197,6 +231,7 @@ def summarize(
     # Penetration.
     frame_max = m.vertex_depth.amax(-1) if m.num_vertices else torch.zeros(f_n)
     pen_verts = (m.vertex_depth > tol).float().mean(-1) * 100.0
+    pen_by_part, pen_part_series = part_split(m, tol)
     # Paper 2 collision metrics (cm^2).
     d_cur = m.limb_distance
     d_org = (original or m).limb_distance[:f_n]
@@ -257,6 +292,7 @@ def summarize(
         penetration_mean_depth=measure(float(frame_max.mean()) * cm if f_n else None, s, "cm"),
         penetrating_vertices_percent=_round(_mean(pen_verts)),
         penetrating_frames_percent=_round(_mean((frame_max > tol).float() * 100.0)),
+        penetrating_vertices_percent_by_part=pen_by_part,
         contact_pairs=int(m.contact_distance.numel()),
         contact_frames=int((c_count > 0).sum()),
         contact_distance_mean=measure(c_mean * cm if c_mean is not None else None, s, "cm"),
@@ -281,6 +317,7 @@ def summarize(
         "penetration_max_depth": _series(frame_max * k, "cm at 1.80 m"),
         "penetration_volume": _series(m.penetration_volume * k**3, "cm^3 at 1.80 m"),
         "penetrating_vertices_percent": _series(pen_verts, "%"),
+        **pen_part_series,
         "collision_depth": _series(collision_depth * k, "cm at 1.80 m"),
         "contact_distance": _series(c_frame * k, "cm at 1.80 m", c_count > 0),
         "foot_skate": _series(skate_frame * k, "cm/frame at 1.80 m", skate_valid),
@@ -350,4 +387,7 @@ def compute_metrics(
     return summarize(measures, original, reference, source_feet, params), measures
 
 
-__all__ = ["LIMBS", "ClipMeasures", "MetricParams", "compute_metrics", "limb_distances", "measure_clip", "summarize"]
+__all__ = [
+    "LIMBS", "ClipMeasures", "MetricParams", "compute_metrics", "limb_distances", "measure_clip", "part_split",
+    "penetration_by_part", "summarize", "vertex_part_clusters",
+]  # fmt: skip

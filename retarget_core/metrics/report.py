@@ -38,6 +38,11 @@ class MetricSummary(BaseModel):
     penetration_mean_depth: Measure
     penetrating_vertices_percent: float | None
     penetrating_frames_percent: float | None
+    penetrating_vertices_percent_by_part: dict[str, float] | None = Field(
+        None,
+        description="penetrating_vertices_percent split by the part of each penetrating vertex (head, torso, "
+        "left_arm, right_arm, left_leg, right_leg): shares of all vertices, adding up to the total",
+    )
     contact_pairs: int
     contact_frames: int
     contact_distance_mean: Measure
@@ -117,6 +122,43 @@ class SourceContacts(BaseModel):
     vertex_pairs: ContactVertexPairs | None = None
 
 
+# --- the source measured on its own body (issue 8, part 6; computed by metrics/source.py) --------------------
+
+
+class SourceFlag(BaseModel):
+    """A source figure over its threshold, with the sentence the job's warnings carry."""
+
+    name: str = Field(description="hand_inside_body, foot_skate, foot_slide, below_floor, floats or jitter")
+    value: float
+    threshold: float
+    unit: str
+    message: str
+
+
+class SourceMetrics(BaseModel):
+    """The source motion measured on its own body with the result's measures (docs/metrics.md, "source")."""
+
+    body: str = Field(description="the body the source was measured on")
+    frames: int
+    fps: float
+    penetrating_vertices_percent: float | None
+    penetrating_vertices_percent_by_part: dict[str, float] = Field(default_factory=dict)
+    penetration_max_depth: Measure
+    hand_depth_max: Measure = Field(description="deepest hand vertex inside another part over the clip")
+    hand_inside_frames_percent: float = Field(description="frames where a hand is more than 1 cm inside the body")
+    hand_inside_frames_percent_by_hand: dict[str, float] = Field(default_factory=dict)
+    foot_skate: Measure = Field(description="mean horizontal step of planted foot joints (source foot contacts)")
+    foot_slide: Measure = Field(description="mean horizontal step of feet flat on the floor")
+    foot_slide_frames_percent: float | None = Field(description="floor frames of a foot sliding more than 1 cm/frame")
+    ground_penetration_mean: Measure = Field(description="mean over frames of the lowest vertex below y = 0")
+    ground_below_frames_percent: float = Field(description="frames whose lowest vertex is more than 1 cm below y = 0")
+    foot_float_mean: Measure = Field(description="mean height of the lowest foot vertex on frames with a planted toe")
+    jerk: Measure = Field(description="mean joint jerk at 30 fps (cm/frame^3)")
+    jerk_to_acceleration: float | None = Field(None, description="mean jerk over mean acceleration (noise: 1.83)")
+    flags: list[SourceFlag] = Field(default_factory=list)
+    warnings: list[str] = Field(default_factory=list, description="the flags' messages (also in the report's notes)")
+
+
 class MetricsReport(BaseModel):
     """The metrics JSON of one job (motion x target)."""
 
@@ -128,6 +170,7 @@ class MetricsReport(BaseModel):
     target_height_m: float
     scale_to_180: float = Field(description="multiply a length on the target by this to get it at 1.80 m")
     source_contacts: SourceContacts = Field(default_factory=SourceContacts)
+    source: SourceMetrics | None = Field(None, description="the source on its own body (what came in broken)")
     before: MethodMetrics
     after: MethodMetrics | None = None
     improvement: dict[str, float | None] = Field(
@@ -160,9 +203,10 @@ def build_metrics_report(
     notes: list[str] | None = None,
     context: dict[str, Any] | None = None,
     include_series: bool = True,
+    source: SourceMetrics | None = None,
 ) -> MetricsReport:
     """The report of one job; ``improvement`` holds after minus before for the main numbers (negative is better
-    for all of them)."""
+    for all of them). ``source``: the source measured on its body; its warnings are added to ``notes``."""
     if not include_series:
         before = MethodMetrics(summary=before.summary)
         after = MethodMetrics(summary=after.summary) if after is not None else None
@@ -179,11 +223,12 @@ def build_metrics_report(
         target_height_m=round(target_height_m, 4),
         scale_to_180=round(1.80 / target_height_m, 6),
         source_contacts=source_contacts or SourceContacts(),
+        source=source,
         before=before,
         after=after,
         improvement=improvement,
         timings_s=dict(timings_s or {}),
-        notes=list(notes or []),
+        notes=list(notes or []) + [w for w in (source.warnings if source else []) if w not in (notes or [])],
         context=dict(context or {}),
     )
 
@@ -210,6 +255,8 @@ __all__ = [
     "SelfContactEntry",
     "Series",
     "SourceContacts",
+    "SourceFlag",
+    "SourceMetrics",
     "build_metrics_report",
     "measure",
     "read_metrics_json",

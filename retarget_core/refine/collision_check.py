@@ -12,7 +12,7 @@ from retarget_core import kinematics
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints
-from retarget_core.energy.sdf import PartSDF, sample_pairs, segment_matrices, vertex_depths
+from retarget_core.energy.sdf import PairSamples, PartSDF, sample_pairs, segment_matrices, vertex_depths
 
 
 @dataclass
@@ -92,7 +92,7 @@ def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translat
     return FrameCheck(frames, vol, mx, cnt, depth, contact)
 
 
-def _contact_distance(sdf: PartSDF, samples, contacts: ContactInstances, sel: Tensor, local_frame: Tensor,  # type: ignore[no-untyped-def]
+def _contact_distance(sdf: PartSDF, samples: PairSamples, contacts: ContactInstances, sel: Tensor, local_frame: Tensor,
                       cluster: Tensor) -> Tensor:  # fmt: skip
     """Hand-to-cluster distance of contact instances ``sel`` (local frame indices into the samples' chunk)."""
     parts = sdf.parts

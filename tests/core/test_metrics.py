@@ -180,7 +180,8 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
     assert r.before.summary.contact_pairs == job.constraints.count
     assert r.before.summary.contact_distance_mean.value is not None
     assert r.after is not None and r.after.summary.mpjpe.value == pytest.approx(0.0, abs=1e-6)
-    assert set(r.timings_s) == {"contacts", "correspondence", "sdf", "metrics"}
+    assert set(r.timings_s) == {"contacts", "correspondence", "sdf", "metrics", "source"}
+    assert r.source is not None and r.source.body == src.name and r.source.frames == frames
     with pytest.raises(ValueError, match="same number of frames"):
         measure_job(src, src_map, view, tgt, tgt_map, before.slice(0, 3))
 
@@ -243,3 +244,205 @@ def test_torch_threads_is_restored() -> None:
     with pytest.raises(RuntimeError), torch_threads(1):
         raise RuntimeError("boom")
     assert torch.get_num_threads() == before
+
+
+# --- penetration per body part (issue 8, part 2) -------------------------------------------------------------
+
+
+def _subtree(parents: list[int], root: int) -> list[int]:
+    out = []
+    for j in range(len(parents)):
+        k = j
+        while k >= 0 and k != root:
+            k = parents[k]
+        if k == root:
+            out.append(j)
+    return out
+
+
+def arm_swung(ch, mapping, side: str, degrees: float) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[no-untyped-def]
+    """World rotations ``(J, 4)`` and positions ``(J, 3)`` of the rest pose with the ``side`` arm turned by
+    ``degrees`` about the forward (z) axis at the shoulder (negative: the left arm swings in, through the torso)."""
+    from retarget_core import rotations as rot
+
+    grot, gpos = ch.skeleton.rest_global()
+    grot, gpos = grot.clone(), gpos.clone()
+    root = mapping.joints[f"{side}Arm"]
+    q = rot.from_euler("xyz", torch.tensor([0.0, 0.0, degrees]))
+    p0 = gpos[root].clone()
+    for j in _subtree(ch.skeleton.parents, root):
+        grot[j] = rot.mul(q, grot[j])
+        gpos[j] = p0 + rot.apply(q, gpos[j] - p0)
+    return grot, gpos
+
+
+def test_penetration_is_split_by_the_part_of_each_vertex(average_body) -> None:
+    """The rest pose counts nothing; the left arm swung into the torso counts (mostly) left-arm vertices, the
+    right arm swung in right-arm ones; the six parts add up to the total, in the summary and per frame."""
+    from retarget_core.body_parts import CLUSTERS
+
+    ch, mapping, sdf = average_body
+    rest = ch.skeleton.rest_global()
+    poses = [rest, arm_swung(ch, mapping, "Left", -60.0), arm_swung(ch, mapping, "Right", 60.0)]
+    grot = torch.stack([g for g, _ in poses])
+    gpos = torch.stack([p for _, p in poses])
+    lr, lt = kinematics.global_to_local(ch.skeleton.parents, grot, gpos)
+    out = summarize(measure_clip(ch, mapping, sdf, Motion(ch.skeleton, 30.0, lr, lt, "arms_in")))
+    series = {c: out.series[f"penetrating_vertices_percent_{c}"].values for c in CLUSTERS}
+    assert all(series[c][0] == 0.0 for c in CLUSTERS), series  # the rest pose
+    assert series["left_arm"][1] > 0.5 and series["right_arm"][1] == 0.0
+    assert series["right_arm"][2] > 0.5 and series["left_arm"][2] == 0.0
+    assert series["left_arm"][1] > series["torso"][1] and series["right_arm"][2] > series["torso"][2]
+    for c in ("head", "left_leg", "right_leg"):
+        assert series[c][1] == 0.0 and series[c][2] == 0.0
+    total = out.series["penetrating_vertices_percent"].values
+    for f in range(3):
+        assert sum(series[c][f] for c in CLUSTERS) == pytest.approx(total[f], abs=1e-3)
+    by_part = out.summary.penetrating_vertices_percent_by_part
+    assert by_part is not None and list(by_part) == list(CLUSTERS)
+    assert sum(by_part.values()) == pytest.approx(out.summary.penetrating_vertices_percent, abs=1e-3)
+    assert by_part["left_arm"] == pytest.approx(sum(series["left_arm"]) / 3, abs=1e-3)
+
+
+@pytest.mark.parametrize("body", ["mh_male_bulky", "mh_female_average", "mh_male_muscular"])
+def test_a_body_standing_in_its_rest_pose_reports_no_penetration(shared_data: Path, body: str) -> None:
+    from retarget_core.body_cache import part_sdf_for
+    from retarget_core.loading import load_character
+    from retarget_core.metrics.compute import compute_metrics
+
+    loaded = load_character(shared_data / "characters" / f"{body}.glb")
+    ch = loaded.character
+    frames = 3
+    rest = Motion(ch.skeleton, 30.0, ch.skeleton.rest_rotations.expand(frames, -1, -1).clone(),
+                  ch.skeleton.rest_translations.expand(frames, -1, -1).clone(), "rest")  # fmt: skip
+    _, sdf = part_sdf_for(ch, loaded.mapping)
+    metrics, _ = compute_metrics(ch, loaded.mapping, sdf, rest)
+    s = metrics.summary
+    assert s.penetrating_vertices_percent == 0.0 and s.penetrating_frames_percent == 0.0
+    assert s.penetration_max_depth.value == 0.0 and s.penetration_volume.value == 0.0
+    assert s.penetrating_vertices_percent_by_part is not None
+    assert set(s.penetrating_vertices_percent_by_part.values()) == {0.0}
+    assert metrics.penetration_vertices is not None and metrics.penetration_vertices.vertex == []
+
+
+# --- the source measured on its own body (issue 8, part 6) ---------------------------------------------------
+
+
+def _hand_into_belly(ch, mapping, depth: float, steps: int = 150) -> torch.Tensor:  # type: ignore[no-untyped-def]
+    """Local rotations ``(J, 4)``: the rest pose with the left arm bent so the hand's nearest vertex is ``depth``
+    inside the front of the belly (a Spine vertex on the body's front, along its inward normal)."""
+    import roma
+
+    from retarget_core import rotations as rot
+
+    parts = body_parts(ch, mapping)
+    sk = ch.skeleton
+    verts = ch.vertices
+    belly = parts.part_vertices(parts.index("Spine"))
+    bv = verts[belly]
+    score = bv[:, 2] - 2.0 * bv[:, 0].abs()  # front (+z) and near the middle
+    vertex = int(belly[int(score.argmax())])
+    target = verts[vertex] - depth * ch.vertex_normals()[vertex]
+    chain = [mapping.joints[f"Left{n}"] for n in ("Arm", "ForeArm", "Hand")]
+    hand = parts.group("LeftHand")[::3]
+    rest_rot, rest_pos = sk.rest_global()
+    dense = ch.dense_weights()[hand]
+    params = torch.zeros(len(chain), 3, requires_grad=True)
+    opt = torch.optim.Adam([params], lr=0.05)
+
+    def local() -> torch.Tensor:
+        r = sk.rest_rotations.clone()
+        for k, j in enumerate(chain):
+            r[j] = rot.mul(sk.rest_rotations[j], roma.rotvec_to_unitquat(params[k]))
+        return r
+
+    for _ in range(steps):
+        grot, gpos = kinematics.forward_kinematics(sk.parents, local(), sk.rest_translations)
+        x = kinematics.linear_blend_skinning(verts[hand], dense, kinematics.skinning_matrices(rest_rot, rest_pos, grot, gpos))
+        loss = (x - target).norm(dim=-1).min() ** 2 + 1e-3 * (x.mean(0) - target).norm() ** 2
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        return local()
+
+
+def _source_clip(ch, local_rot: torch.Tensor, frames: int, step: float) -> Motion:  # type: ignore[no-untyped-def]
+    """``local_rot`` held for ``frames`` frames, the whole body sliding forward ``step`` per frame on the floor."""
+    trans = ch.skeleton.rest_translations.expand(frames, -1, -1).clone()
+    trans[:, 0, 2] += step * torch.arange(frames, dtype=torch.float32)
+    return Motion(ch.skeleton, 30.0, local_rot.expand(frames, -1, -1).clone(), trans, "broken_source")
+
+
+def _feet(ch, mapping, motion: Motion):  # type: ignore[no-untyped-def]
+    from retarget_core.contacts.foot_contact import detect_foot_contacts
+
+    _, gpos = motion.global_transforms()
+    return detect_foot_contacts(gpos, ch.skeleton.rest_global()[1], mapping, ch.height, motion.fps)
+
+
+def test_source_with_a_sunk_hand_and_skating_feet_gets_warnings(average_body) -> None:
+    from retarget_core.metrics.source import SourceThresholds, measure_source
+
+    ch, mapping, sdf = average_body
+    s = 1.80 / ch.height
+    frames = 12
+    sunk = _source_clip(ch, _hand_into_belly(ch, mapping, 0.03), frames, 0.025)
+    metrics, warnings = measure_source(ch, mapping, sunk, sdf, _feet(ch, mapping, sunk))
+    assert metrics.hand_inside_frames_percent == 100.0
+    assert metrics.hand_inside_frames_percent_by_hand["LeftHand"] == 100.0
+    assert metrics.hand_inside_frames_percent_by_hand["RightHand"] == 0.0
+    assert metrics.hand_depth_max.value > 1.0 / s  # cm on the body: more than 1 cm at 1.80 m
+    assert metrics.penetrating_vertices_percent_by_part["left_arm"] > 0.0
+    assert metrics.foot_slide.value == pytest.approx(2.5, rel=1e-3)  # both feet flat on the floor, sliding
+    assert metrics.foot_slide_frames_percent == 100.0
+    assert metrics.foot_skate.value is None  # too fast to count as planted
+    names = {f.name for f in metrics.flags}
+    assert names == {"hand_inside_body", "foot_slide"}, metrics.flags
+    assert warnings == metrics.warnings and len(warnings) == 2
+    assert any("hand is more than 1 cm inside the body" in w and "LeftHand 100 %" in w for w in warnings)
+    assert any("skates" in w for w in warnings)
+    # Stricter or looser thresholds move the verdict: they are the named fields.
+    loose = SourceThresholds(hand_frames_percent=100.0, slide_frames_percent=100.0)
+    assert measure_source(ch, mapping, sunk, sdf, _feet(ch, mapping, sunk), loose)[1] == []
+
+
+def test_a_clean_source_gets_no_warnings(average_body) -> None:
+    from retarget_core.metrics.source import measure_source
+
+    ch, mapping, sdf = average_body
+    still = _source_clip(ch, ch.skeleton.rest_rotations, 8, 0.0)
+    metrics, warnings = measure_source(ch, mapping, still, sdf, _feet(ch, mapping, still))
+    assert warnings == [] and metrics.flags == []
+    assert metrics.hand_inside_frames_percent == 0.0 and metrics.penetrating_vertices_percent == 0.0
+    assert metrics.foot_skate.value == pytest.approx(0.0, abs=1e-6) and metrics.jerk.value == pytest.approx(0.0, abs=1e-6)
+    assert abs(metrics.foot_float_mean.value) < 0.5  # the rest pose stands on the floor
+
+
+def test_source_warnings_reach_the_report_and_its_notes(average_body) -> None:
+    from retarget_core.metrics.source import measure_source
+
+    ch, mapping, sdf = average_body
+    sunk = _source_clip(ch, _hand_into_belly(ch, mapping, 0.03, steps=100), 6, 0.0)
+    source, warnings = measure_source(ch, mapping, sunk, sdf, _feet(ch, mapping, sunk))
+    m = summarize(measure_clip(ch, mapping, sdf, sunk))
+    report = build_metrics_report("broken", ch.name, ch.height, m, notes=["a pipeline note"], source=source)
+    assert report.notes == ["a pipeline note", *warnings] and warnings
+    again = MetricsReport.model_validate_json(report.model_dump_json())
+    assert again.source is not None and again.source.flags[0].name == "hand_inside_body"
+
+
+def test_a_jittering_source_is_flagged_as_jitter(average_body) -> None:
+    """3 mm of noise on the root (every joint shakes with it): jerk far above the threshold and 1.8 times the
+    acceleration, the signature of noise; nothing else is flagged."""
+    from retarget_core.metrics.source import measure_source
+
+    ch, mapping, sdf = average_body
+    still = _source_clip(ch, ch.skeleton.rest_rotations, 30, 0.0)
+    trans = still.translations.clone()
+    trans[:, 0] += 0.003 * torch.randn(trans[:, 0].shape, generator=torch.Generator().manual_seed(0))
+    shaky = Motion(ch.skeleton, 30.0, still.rotations, trans, "shaky")
+    metrics, warnings = measure_source(ch, mapping, shaky, sdf, _feet(ch, mapping, shaky))
+    assert metrics.jerk_to_acceleration == pytest.approx(1.83, abs=0.2)
+    assert [f.name for f in metrics.flags] == ["jitter"], metrics.flags
+    assert "jitters" in warnings[0]

@@ -46,6 +46,10 @@ def test_run_job_writes_all_outputs(samples: Path, tmp_path: Path) -> None:
     assert len(metrics["before"]["series"]["foot_skate"]["values"]) == 31
     assert metrics["context"]["source"]["mapping"]["joints"]["LeftHand"]["joint"] == "CC_Base_L_Hand"
     assert out.summary["before"]["penetration_volume"]["unit"] == "cm^3"
+    # The source measured on its own body; what it flags is among the job's warnings and the report's notes.
+    assert metrics["source"]["body"] == metrics["context"]["source"]["body"]
+    assert set(metrics["source"]["penetrating_vertices_percent_by_part"]) == set(metrics["after"]["summary"]["penetrating_vertices_percent_by_part"])
+    assert set(metrics["source"]["warnings"]) <= set(out.warnings) and set(metrics["source"]["warnings"]) <= set(metrics["notes"])
     # Penetrating vertices for the viewer: in range, deeper than the tolerance, listed deepest first per frame.
     pv = metrics["after"]["penetration_vertices"]
     assert len(pv["frame"]) == len(pv["vertex"]) == len(pv["depth"]) > 0

@@ -18,12 +18,31 @@ from retarget_core.metrics.report import (
     SelfContactEntry,
     Series,
     SourceContacts,
+    SourceFlag,
+    SourceMetrics,
     build_metrics_report,
     measure,
 )
 
 CONTACT_FIRST, CONTACT_LAST = 5, 20
-PENETRATING = {"before": 4000, "after": 1500}  # vertices 0..n-1 listed as penetrating on even frames
+PENETRATING = {"before": 4000, "after": 1500}
+PARTS = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
+SOURCE_FLAG = "source (as performed by its body fixture body): a hand is more than 1 cm inside the body"
+
+
+def _source(frames: int, fps: float, scale: float) -> SourceMetrics:
+    """A source section with one flag (a hand sunk into the body)."""
+    m = lambda v, unit: measure(v, scale, unit)  # noqa: E731
+    flag = SourceFlag(name="hand_inside_body", value=35.0, threshold=10.0, unit="% of frames", message=SOURCE_FLAG)
+    return SourceMetrics(
+        body="fixture body", frames=frames, fps=fps, penetrating_vertices_percent=0.4,
+        penetrating_vertices_percent_by_part={p: 0.1 if p in ("left_arm", "torso") else 0.0 for p in PARTS},
+        penetration_max_depth=m(2.0, "cm"), hand_depth_max=m(2.0, "cm"), hand_inside_frames_percent=35.0,
+        hand_inside_frames_percent_by_hand={"LeftHand": 35.0, "RightHand": 0.0}, foot_skate=m(0.2, "cm/frame"),
+        foot_slide=m(0.3, "cm/frame"), foot_slide_frames_percent=2.0, ground_penetration_mean=m(0.1, "cm"),
+        ground_below_frames_percent=0.0, foot_float_mean=m(0.3, "cm"), jerk=m(0.2, "cm/frame^3"),
+        flags=[flag], warnings=[flag.message],
+    )  # fmt: skip  # vertices 0..n-1 listed as penetrating on even frames
 
 
 def _summary(frames: int, fps: float, scale: float, pen: float, skate: float, contact: float) -> MetricSummary:
@@ -40,6 +59,7 @@ def _summary(frames: int, fps: float, scale: float, pen: float, skate: float, co
         global_position_error=m(None, "cm"), global_position_mse=m(None, "cm^2"), mpjpe=m(1.0, "cm"),
         m_c=m(pen**2, "cm^2"), m_i=m(pen**2 / 2, "cm^2"), m_o=m(0.1, "cm^2"),
         acceleration=m(0.4, "cm/frame^2"), jerk=m(0.2, "cm/frame^3"),
+        penetrating_vertices_percent_by_part={**{p: 0.0 for p in PARTS}, "head": pen / 6, "left_arm": pen / 6},
     )  # fmt: skip
 
 
@@ -58,7 +78,9 @@ def _method(frames: int, fps: float, scale: float, gain: float) -> MethodMetrics
         "foot_contact_left_heel": Series(unit="0/1", values=left),
         "foot_contact_right_toe": Series(unit="0/1", values=right),
         "foot_contact_right_heel": Series(unit="0/1", values=right),
-    }
+        **{f"penetrating_vertices_percent_{p}": Series(unit="%", values=[round(v / 6, 4) if p in ("head", "left_arm") else 0.0
+                                                                       for v in pen]) for p in PARTS},
+    }  # fmt: skip
     return MethodMetrics(summary=_summary(frames, fps, scale, max(pen), 0.3 * gain, 1.5 * gain), series=series)
 
 
@@ -75,7 +97,8 @@ def metrics_with_series(frames: int, fps: float, target_height_m: float = 1.73) 
         foot_contact_frames=frames, source_body="builtin",
     )  # fmt: skip
     report = build_metrics_report("fixture", "fixture target", target_height_m, before, after, contacts,
-                                  notes=["fixture metrics (synthetic series)"])  # fmt: skip
+                                  notes=["fixture metrics (synthetic series)"],
+                                  source=_source(frames, fps, scale))  # fmt: skip
     data = MetricsReport.model_validate(report.model_dump(mode="json")).model_dump(mode="json")
     # Proposed optional fields (not in schema 1.0 yet): contact vertex pairs and penetrating vertices per frame.
     rows = [(f, k) for f in range(CONTACT_FIRST, CONTACT_LAST + 1) for k in range(3)]

@@ -29,7 +29,7 @@ from e2e_helpers import (
     view_frames,
     view_pixels,
 )
-from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, PENETRATING, metrics_with_series
+from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, PENETRATING, SOURCE_FLAG, metrics_with_series
 
 pytestmark = [pytest.mark.e2e, pytest.mark.service]
 
@@ -251,6 +251,12 @@ def test_charts_show_the_metrics_of_the_job(new_page: Any, form_job: FormJob, ar
     page.locator(".charts").screenshot(path=str(artifacts / "05-charts-real-job.png"))
     pen = charts[0]
     assert pen["hasData"] and pen["points"] > 0 and pen["playhead"] == 12
+    # The job's metrics split penetration by body part (chart switch) and measure the source on its body.
+    assert pen["parts"] and metrics["after"]["summary"]["penetrating_vertices_percent_by_part"]
+    assert metrics["source"]["body"]
+    if page.evaluate("window.__viewer.views().source.loaded"):
+        flags = int(page.get_attribute('.view[data-view="source"] .source-quality', "data-flags"))
+        assert flags == len(metrics["source"]["flags"])
     assert page.locator(".summary-table tbody tr").count() > 0
     listed = metrics["after"]["penetration_vertices"]
     expected = sum(1 for f in listed["frame"] if f == 12)
@@ -421,6 +427,27 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     seek(page, CONTACT_FIRST + 3)
     page.screenshot(path=str(artifacts / "08-review-fixture-series-laptop.png"))
     page.locator(".charts").screenshot(path=str(artifacts / "08-charts-fixture-series.png"))
+    # The penetration chart's split by body part: one line per part; the readout names the parts at the frame.
+    chart = '.chart[data-chart="penetration"]'
+    assert page.get_attribute(chart, "data-mode") == "value"
+    page.click(f"{chart} .chart-mode")
+    assert page.get_attribute(chart, "data-mode") == "parts"
+    assert "by part" in page.inner_text(f"{chart} .chart-title")
+    seek(page, 12)
+    readout = page.inner_text(f"{chart} .chart-readout")
+    assert "head" in readout and "left arm" in readout and "torso" not in readout, readout
+    page.locator(".charts").screenshot(path=str(artifacts / "08-charts-fixture-by-part.png"))
+    page.click(f"{chart} .chart-mode")
+    assert page.get_attribute(chart, "data-mode") == "value"
+    head_row = page.locator('.summary-table tr[data-key="penetrating_vertices_percent_by_part.head"]')
+    assert head_row.count() == 1 and "head" in head_row.inner_text()
+    # What came in broken: the source pane lists the source's flags.
+    if page.evaluate("window.__viewer.views().source.loaded"):
+        pane = page.locator('.view[data-view="source"] .source-quality')
+        assert pane.get_attribute("data-flags") == "1"
+        item = pane.locator('[data-flag="hand_inside_body"]')
+        assert item.get_attribute("title") == SOURCE_FLAG and "hand inside the body: 35" in item.inner_text()
+        page.locator('.view[data-view="source"]').screenshot(path=str(artifacts / "08-source-pane-flags.png"))
     assert not page.errors, page.errors
 
 

@@ -213,6 +213,7 @@ async function buildViewer(body, job, views, metrics) {
   }
   renderSummary(body.querySelector('.summary'), metrics);
   renderStages(body.querySelector('.stage-reports'), metrics);
+  renderSourceQuality(body.querySelector('.view[data-view="source"] .view-box'), metrics.source);
   renderNotes(body.querySelector('.notes'), job, metrics);
 
   const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
@@ -262,7 +263,7 @@ async function buildViewer(body, job, views, metrics) {
       return out;
     },
     charts() {
-      return charts.map((c) => ({ id: c.data.id, hasData: c.hasData, points: Number(c.container.dataset.points), playhead: c.frame }));
+      return charts.map((c) => ({ id: c.data.id, hasData: c.hasData, points: Number(c.container.dataset.points), playhead: c.frame, mode: c.mode, parts: Boolean(c.data.parts) }));
     },
     seek(f) { timeline.pause(); timeline.seek(f); },
     play() { timeline.play(); },
@@ -359,6 +360,26 @@ function renderStages(el, metrics) {
       ${st.seconds === null ? '' : `<small>${formatNumber(st.seconds)} s</small>`}
       ${st.figures.length ? `<details><summary>figures</summary><table>${st.figures.map(([k, v]) => `<tr><th scope="row">${esc(k.replaceAll('_', ' '))}</th><td>${typeof v === 'boolean' ? (v ? 'yes' : 'no') : formatNumber(v)}</td></tr>`).join('')}</table></details>` : ''}</li>`).join('');
   el.innerHTML = `<h2>Stages</h2><ul class="stage-report-list">${items}</ul>`;
+}
+
+/**
+ * The source pane's list of what came in broken (metrics' `source`: the source measured on its own body): the
+ * flags in words, and the figures on demand. Drawn over the bottom of the source view, so the layout stays.
+ */
+function renderSourceQuality(box, source) {
+  if (!box || !source) return;
+  const el = document.createElement('div');
+  el.className = `source-quality ${source.flags.length ? 'flagged' : 'clean'}`;
+  el.dataset.flags = String(source.flags.length);
+  const figures = source.figures.map((f) => `<li data-key="${esc(f.key)}">${esc(f.label)}: <b>${formatNumber(f.value)}</b> ${esc(f.unit)}</li>`).join('');
+  const head = source.flags.length
+    ? `⚠ ${source.flags.length} problem${source.flags.length > 1 ? 's' : ''} in the source itself (not caused by retargeting)`
+    : '✓ no problem found in the source';
+  el.innerHTML = `<details${source.flags.length ? ' open' : ''}><summary>${head}</summary>
+    <ul class="source-flags">${source.flags.map((f) => `<li data-flag="${esc(f.name)}" title="${esc(f.message)}">${esc(f.label)}${f.value === null ? '' : `: <b>${formatNumber(f.value)}</b> ${esc(f.unit)}`}${f.threshold === null ? '' : ` (over ${formatNumber(f.threshold)})`}</li>`).join('')}</ul>
+    <details class="source-figures"><summary>figures on ${esc(source.body ?? 'the source body')} (at 1.80 m)</summary><ul>${figures}</ul></details>
+  </details>`;
+  box.appendChild(el);
 }
 
 function renderNotes(el, job, metrics) {

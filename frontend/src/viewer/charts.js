@@ -1,8 +1,10 @@
 /**
  * Per-frame charts on a plain canvas: "before" and "after" lines of one metric, a playhead that follows the
- * timeline, and click-or-drag to scrub. A chart without series says "no data for this job".
+ * timeline, and click-or-drag to scrub. A chart without series says "no data for this job". A chart whose data
+ * carries `parts` (the penetration chart: penetrating vertices per body part) has a "by part" switch that draws
+ * one line per part instead, in the part's colour (before wide and translucent, after thin).
  */
-import { seriesRange, valueAt } from '../metrics.js';
+import { PARTS, seriesRange, valueAt } from '../metrics.js';
 import { formatNumber } from '../format.js';
 
 export const COLORS = { before: '#e8a33d', after: '#4aa3ff', playhead: '#f2f2f2', grid: '#39404a', text: '#aab3bf' };
@@ -25,14 +27,25 @@ export class Chart {
     const head = document.createElement('div');
     head.className = 'chart-head';
     head.innerHTML = `<span class="chart-title"></span><span class="chart-readout"></span>`;
-    head.querySelector('.chart-title').textContent = data.title + (data.unit ? ` (${data.unit})` : '');
+    this.title = head.querySelector('.chart-title');
     this.readout = head.querySelector('.chart-readout');
+    this.mode = 'value';
+    if (data.parts) {
+      const toggle = document.createElement('button');
+      toggle.type = 'button';
+      toggle.className = 'chart-mode';
+      toggle.dataset.chartMode = 'parts';
+      toggle.title = 'Show the share of penetrating vertices split by body part (the part of each vertex)';
+      toggle.onclick = () => this.setMode(this.mode === 'parts' ? 'value' : 'parts');
+      head.insertBefore(toggle, this.readout);
+      this.toggle = toggle;
+    }
     container.appendChild(head);
     this.canvas = document.createElement('canvas');
     this.canvas.className = 'chart-canvas';
     container.appendChild(this.canvas);
-    this.range = seriesRange([data.before, data.after]);
     this.frame = -1;
+    this.setMode('value', false);
     const scrub = (e) => {
       if (!this.hasData) return;
       const r = this.canvas.getBoundingClientRect();
@@ -54,6 +67,40 @@ export class Chart {
     });
     this.resizeObserver = new ResizeObserver(() => this.draw(this.timeline.frame, true));
     this.resizeObserver.observe(this.canvas);
+  }
+
+  /** 'value': the metric's before/after lines; 'parts': one line per body part (when the data has parts). */
+  setMode(mode, redraw = true) {
+    this.mode = mode === 'parts' && this.data.parts ? 'parts' : 'value';
+    const parts = this.mode === 'parts';
+    this.title.textContent = parts
+      ? `Penetrating vertices by part (${this.data.parts.unit})`
+      : this.data.title + (this.data.unit ? ` (${this.data.unit})` : '');
+    if (this.toggle) {
+      this.toggle.textContent = parts ? 'depth' : 'by part';
+      this.toggle.setAttribute('aria-pressed', String(parts));
+    }
+    this.container.dataset.mode = this.mode;
+    this.range = seriesRange(this.lines().map((l) => l.series));
+    if (redraw) this.draw(this.timeline.frame, true);
+  }
+
+  /** The lines of the current mode: {series, color, wide, part?}. */
+  lines() {
+    if (this.mode !== 'parts') {
+      return [
+        { series: this.data.before, color: COLORS.before, wide: true },
+        { series: this.data.after, color: COLORS.after, wide: false },
+      ].filter((l) => l.series);
+    }
+    const out = [];
+    for (const [name, wide] of [['before', true], ['after', false]]) {
+      for (const p of PARTS) {
+        const s = this.data.parts[name]?.[p.id];
+        if (s) out.push({ series: s, color: p.color, wide, part: p.id });
+      }
+    }
+    return out;
   }
 
   /** Redraw with the playhead at `frame`. */
@@ -104,12 +151,12 @@ export class Chart {
     ctx.fillText('0', l, t + ph + 3);
     ctx.textAlign = 'right';
     ctx.fillText(String(n - 1), l + pw, t + ph + 3);
-    for (const [name, s] of [['before', this.data.before], ['after', this.data.after]]) {
-      if (!s) continue;
+    const parts = this.mode === 'parts';
+    for (const { series: s, color, wide } of this.lines()) {
       // "before" wide and translucent under a thin "after": both stay visible where they are equal.
-      ctx.strokeStyle = COLORS[name];
-      ctx.globalAlpha = name === 'before' ? 0.75 : 1;
-      ctx.lineWidth = name === 'before' ? 3.2 : 1.5;
+      ctx.strokeStyle = color;
+      ctx.globalAlpha = wide ? (parts ? 0.45 : 0.75) : 1;
+      ctx.lineWidth = wide ? 3.2 : 1.5;
       ctx.beginPath();
       let open = false;
       s.values.forEach((v, i) => {
@@ -119,10 +166,10 @@ export class Chart {
       ctx.stroke();
       ctx.globalAlpha = 1;
       // isolated points (a single defined frame between gaps) as dots
-      ctx.fillStyle = COLORS[name];
+      ctx.fillStyle = color;
       s.values.forEach((v, i) => {
         if (v !== null && (s.values[i - 1] ?? null) === null && (s.values[i + 1] ?? null) === null) {
-          const r = name === 'before' ? 3 : 1.5;
+          const r = wide ? 3 : 1.5;
           ctx.fillRect(X(i) - r, Y(v) - r, 2 * r, 2 * r);
         }
       });
@@ -134,9 +181,19 @@ export class Chart {
     ctx.moveTo(x, t);
     ctx.lineTo(x, t + ph);
     ctx.stroke();
-    const bv = valueAt(this.data.before, frame);
-    const av = valueAt(this.data.after, frame);
-    this.readout.innerHTML = `<b style="color:${COLORS.before}">${formatNumber(bv)}</b> → <b style="color:${COLORS.after}">${formatNumber(av)}</b>`;
+    if (parts) {
+      // The parts with penetration at this frame, "after" where it exists (else "before"), largest first.
+      const side = this.data.parts.after ?? this.data.parts.before;
+      const at = PARTS.map((p) => ({ p, v: valueAt(side[p.id], frame) })).filter((x) => x.v);
+      at.sort((a, b) => b.v - a.v);
+      this.readout.innerHTML = at.length
+        ? at.slice(0, 3).map((x) => `<b style="color:${x.p.color}">${x.p.label} ${formatNumber(x.v)}</b>`).join(' ')
+        : 'none';
+    } else {
+      const bv = valueAt(this.data.before, frame);
+      const av = valueAt(this.data.after, frame);
+      this.readout.innerHTML = `<b style="color:${COLORS.before}">${formatNumber(bv)}</b> → <b style="color:${COLORS.after}">${formatNumber(av)}</b>`;
+    }
     this.container.dataset.playhead = String(frame);
   }
 

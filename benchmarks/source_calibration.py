@@ -1,0 +1,86 @@
+"""The source figures of metrics/source.py on the shared clips, to choose the warning thresholds.
+
+Every clip (resampled to 30 fps, first 300 frames) on the body the pipeline would give it (the built-in body
+sized to its skeleton), measured with :func:`retarget_core.metrics.source.measure_source`; plus the same clips
+with joint jitter added (Gaussian noise on the root position and small rotation noise on every joint) to see
+where jitter starts. Prints a table and writes benchmarks/results/source_calibration.json.
+
+    flock /tmp/heavy.lock python benchmarks/source_calibration.py [--clips 007_01 002_05 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from retarget_core import rotations
+from retarget_core.body_cache import part_sdf_for
+from retarget_core.contacts.foot_contact import detect_foot_contacts
+from retarget_core.copy_retarget import copy_retarget
+from retarget_core.loading import load_motion
+from retarget_core.metrics.source import measure_source
+from retarget_core.motion import Motion
+from retarget_core.resample import resample
+from retarget_core.source_body import source_body_for
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+FIGURES = ("hand_inside_frames_percent", "hand_depth_max", "foot_skate", "foot_slide", "foot_slide_frames_percent",
+           "ground_below_frames_percent", "ground_penetration_mean", "foot_float_mean", "jerk", "jerk_to_acceleration")  # fmt: skip
+
+
+def jittered(motion: Motion, position_m: float, angle_deg: float, seed: int = 0) -> Motion:
+    """``motion`` with Gaussian noise: ``position_m`` on the root translation, ``angle_deg`` on every rotation."""
+    g = torch.Generator().manual_seed(seed)
+    trans = motion.translations.clone()
+    trans[:, 0] += torch.randn(trans[:, 0].shape, generator=g) * position_m
+    axis = torch.randn(motion.rotations.shape[:-1] + (3,), generator=g) * (angle_deg * torch.pi / 180.0)
+    import roma
+
+    noise = roma.rotvec_to_unitquat(axis)
+    return Motion(motion.skeleton, motion.fps, rotations.mul(motion.rotations, noise), trans, motion.name + "+jitter")
+
+
+def figures(metrics) -> dict:  # type: ignore[no-untyped-def]
+    out = {}
+    for name in FIGURES:
+        v = getattr(metrics, name)
+        out[name] = v.value_at_180 if hasattr(v, "value_at_180") else v
+    out["flags"] = [f.name for f in metrics.flags]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--clips", nargs="*", default=None)
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/results/source_calibration.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    paths = sorted((SHARED / "motions" / "cmu").glob("*.bvh"))
+    if args.clips:
+        paths = [p for p in paths if p.stem in args.clips]
+    rows = []
+    started = time.perf_counter()
+    for path in paths:
+        loaded = load_motion(path)
+        motion = resample(loaded.motion, 30.0).slice(0, args.frames)
+        body, body_map = source_body_for(motion.skeleton, loaded.mapping)
+        _, sdf = part_sdf_for(body, body_map)
+        for variant, m in (("clean", motion), ("jitter 1 mm / 0.3 deg", jittered(motion, 0.001, 0.3))):
+            view = copy_retarget(m, loaded.mapping, body.skeleton, body_map)
+            grot, gpos = view.global_transforms()
+            feet = detect_foot_contacts(gpos, body.skeleton.rest_global()[1], body_map, body.height, view.fps)
+            metrics, warnings = measure_source(body, body_map, view, sdf, feet)
+            row = {"clip": path.stem, "variant": variant, **figures(metrics)}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({"seconds": round(time.perf_counter() - started, 1), "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
