@@ -219,17 +219,26 @@ def test_run_evaluation_writes_the_table(shared_data: Path, tmp_path: Path) -> N
     table = run_evaluation(
         [shared_data / "motions" / "cmu" / "002_08.bvh"],
         [shared_data / "characters" / "mh_female_skinny.glb", shared_data / "characters" / "mh_male_bulky.glb"],
+        methods=["collisions"],
         out_dir=tmp_path,
         max_frames=40,
         log=None,
     )
-    assert [r.body for r in table.rows] == ["mh_female_skinny", "mh_male_bulky"]
+    assert [(r.method, r.body) for r in table.rows] == [
+        ("copy", "mh_female_skinny"), ("collisions", "mh_female_skinny"),
+        ("copy", "mh_male_bulky"), ("collisions", "mh_male_bulky"),
+    ]  # fmt: skip
     assert {b.group for b in table.bodies} == {"skinny", "bulky"}
     assert table.clips[0].frames == 40 and table.clips[0].fps == 30.0
-    per_body = {g.bodies: g.values["penetration_volume"] for g in table.per_body}
-    assert per_body["mh_male_bulky"] > per_body["mh_female_skinny"]
-    assert json.loads((tmp_path / "eval.json").read_text())["methods"] == ["copy"]
-    assert "| copy | skinny |" in (tmp_path / "eval.md").read_text()
+    copy = {g.bodies: g.values for g in table.per_body if g.method == "copy"}
+    assert copy["mh_male_bulky"]["penetrating_vertices_percent"] > copy["mh_female_skinny"]["penetrating_vertices_percent"]
+    assert all(r.values["pen_percent"] is not None and r.values["foot_accuracy"] is not None for r in table.rows)
+    bulky = next(g for g in table.per_body if g.method == "collisions" and g.bodies == "mh_male_bulky")
+    assert bulky.ratios["pen_percent"] is not None and bulky.ratios["pen_percent"] < 1.0, bulky.ratios
+    assert bulky.ms_per_frame and bulky.ms_per_frame > 0
+    assert json.loads((tmp_path / "eval.json").read_text())["methods"] == ["copy", "collisions"]
+    md = (tmp_path / "eval.md").read_text()
+    assert "| copy | skinny |" in md and "## Ratios to the copy" in md
     with pytest.raises(ValueError, match="unknown method"):
         run_evaluation([], [], methods=["nope"])
 
