@@ -94,7 +94,9 @@ def counted_at(character, parts, sdf, geodesic, grot, gpos, tolerance: float) ->
 
 def draw_xray(ax, verts: np.ndarray, faces: np.ndarray, counted: Counted, cluster_of: np.ndarray,  # type: ignore[no-untyped-def]
               view: tuple[float, float], k180: float, focus: np.ndarray | None = None, radius: float | None = None) -> None:  # fmt: skip
-    """The body as faint triangles and the counted vertices as dots coloured by part (size by depth)."""
+    """The body as faint triangles and the counted vertices as dots coloured by part (size by depth); counted
+    vertices within :data:`FOLD_BAND_M` of the part they enter as black crosses."""
+    fold_band = FOLD_BAND_M / k180
     v = verts[:, [0, 2, 1]]  # Y-up mesh -> matplotlib z-up
     if focus is not None and radius is not None:
         keep = (np.abs(v[faces] - focus[[0, 2, 1]]).max(-1) < radius).all(1)
@@ -109,6 +111,9 @@ def draw_xray(ax, verts: np.ndarray, faces: np.ndarray, counted: Counted, cluste
         colours = [PART_COLORS[CLUSTERS[cluster_of[i]]] for i in counted.vertex]
         size = 3 + 10 * np.clip(counted.depth * k180 * 100 / 3.0, 0, 1)
         ax.scatter(*p.T, c=colours, s=size, depthshade=False, linewidths=0)
+        fold = counted.geodesic < fold_band
+        if fold.any():  # counted vertices in a joint fold: black crosses (a good measure has none)
+            ax.scatter(*p[fold].T, c="black", s=40, marker="x", depthshade=False, linewidths=1.2)
     ax.set_xlim(c[0] - r, c[0] + r)
     ax.set_ylim(c[1] - r, c[1] + r)
     ax.set_zlim(c[2] - r, c[2] + r)
@@ -201,7 +206,9 @@ def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int,
                      radius, k180)  # fmt: skip
         ax.set_title("sagittal section through the deepest", fontsize=9)
     handles = [plt.Line2D([], [], color=c, marker="o", lw=0, label=n) for n, c in PART_COLORS.items()]
-    fig.legend(handles=handles, loc="lower center", ncol=6, fontsize=8, frameon=False)
+    if folds:
+        handles.append(plt.Line2D([], [], color="black", marker="x", lw=0, label="counted in a joint fold"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     pct = 100.0 * len(counted.vertex) / character.num_vertices
     title = (f"{clip} frame {frame} on {character.name}: {len(counted.vertex)} vertices counted ({pct:.2f} %), "
              f"in joint folds (< 3 cm along the surface from the part entered): {folds}")  # fmt: skip
