@@ -189,11 +189,18 @@ def _expand(paths: list[Path], suffixes: tuple[str, ...]) -> list[Path]:
 
 @app.command(name="eval")
 def evaluate(
-    motions: Annotated[list[Path], typer.Argument(help="Motion files or folders of them (BVH/GLB/FBX)")],
+    motions: Annotated[
+        list[Path] | None, typer.Argument(help="Motion files or folders of them (BVH/GLB/FBX); with --heldout: none")
+    ] = None,
     body: Annotated[
-        list[str],
+        list[str] | None,
         typer.Option("--body", "-b", help="Target body file, folder of them, or builtin:<preset>; repeat for several"),
-    ],
+    ] = None,
+    heldout: Annotated[
+        Path | None,
+        typer.Option(help="Run the fixed held-out split (retarget_core/data/heldout.json): its clips from this "
+                     "folder (the shared motions/cmu) on its generated bodies, sources as GLBs on male_average"),
+    ] = None,
     out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
     method: Annotated[
         list[str] | None,
@@ -204,20 +211,34 @@ def evaluate(
     source_body: Annotated[
         str | None, typer.Option(help="Body performing the motions (file or builtin:<preset>); default: their own")
     ] = None,
+    source_glb_body: Annotated[
+        str | None, typer.Option(help="Write each clip as a GLB on this body first and use that (as a studio sends it)")
+    ] = None,
 ) -> None:
-    """Run methods over motions x bodies; print and write the table split skinny/bulky and contact/no-contact."""
+    """Run methods over motions x bodies; print and write the acceptance figures by body and clip group."""
     from retarget_core.evaluation import run_evaluation
 
-    files = _expand(motions, (".bvh", ".glb", ".gltf", ".fbx"))
-    bodies: list[str | Path] = [b for b in body if b.startswith("builtin:")]
-    bodies += _expand([Path(b) for b in body if not b.startswith("builtin:")], (".glb", ".gltf", ".fbx"))
+    groups: dict[str, str] | None = None
+    if heldout is not None:
+        from retarget_core import heldout as split
+
+        files = split.clip_paths(heldout)
+        paths = split.body_paths()
+        bodies: list[str | Path] = list(paths)
+        groups = {p.stem: p.stem.split("-")[0].removeprefix("heldout_") for p in paths}  # heavy, bulky, ...
+        source_glb_body = source_glb_body or split.SOURCE_BODY
+    else:
+        files = _expand(motions or [], (".bvh", ".glb", ".gltf", ".fbx"))
+        bodies = [b for b in body or [] if b.startswith("builtin:")]
+        bodies += _expand([Path(b) for b in body or [] if not b.startswith("builtin:")], (".glb", ".gltf", ".fbx"))
     if not files or not bodies:
-        _fail("no motion files or no bodies given")
+        _fail("no motion files or no bodies given (or use --heldout MOTIONS_DIR)")
     try:
         table = run_evaluation(
-            files, bodies, method or None, out, max_frames, fps=fps, log=console.print, source_character=source_body
-        )
-    except RetargetError as exc:
+            files, bodies, method or None, out, max_frames, fps=fps, log=console.print, source_character=source_body,
+            source_glb_body=source_glb_body, body_groups=groups,
+        )  # fmt: skip
+    except (RetargetError, ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     print(table.to_markdown())
     console.print(f"wrote {out / 'eval.json'} and {out / 'eval.md'}")

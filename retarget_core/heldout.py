@@ -55,6 +55,10 @@ class HeldoutSplit:
     notes: str
 
 
+SOURCE_BODY = "builtin:male_average"
+"""The body the held-out clips are performed by when sent as GLBs (the judge's "clip on an average body")."""
+
+
 @lru_cache(maxsize=1)
 def load_split(path: Path = SPLIT_FILE) -> HeldoutSplit:
     """The split as committed in ``retarget_core/data/heldout.json``."""
