@@ -188,6 +188,8 @@ class JobOut(BaseModel):
     stage: str | None = Field(description="The pipeline stage running now (or last)")
     progress: float = Field(ge=0, le=1, description="Fraction of the job done")
     message: str | None = Field(description="Why it failed or was canceled, in words")
+    note: str | None = Field(default=None, description="Why it runs again (its earlier attempt's worker stopped), "
+                             "or why it waits (no worker serves its queue)")
     error_kind: Literal["input", "internal", "timeout", "worker_lost"] | None = Field(
         description="input: fix the files or options; internal: a bug, retrying may help; timeout; worker_lost"
     )

@@ -14,7 +14,9 @@ from starlette.concurrency import run_in_threadpool
 from api.db import session_scope
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.models import ApiKey, Asset, Job, new_id
+from api.pages import MAX_QUERY_INT, page_bounds
 from api.queue import TASK_INSPECT
+from api.routing import SessionRoute
 from api.schemas import AssetOut, ErrorOut, Page
 from api.serialize import ASSET_CONTENT_TYPES, asset_out, collection
 from api.storage import Storage
@@ -99,7 +101,7 @@ def _insert_asset(url: str, **values: Any) -> AssetOut:
 def make_router(kind: AssetKind) -> APIRouter:
     """The router of ``/v1/characters`` or ``/v1/motions``."""
     coll = collection(kind)
-    router = APIRouter(prefix=f"/v1/{coll}", tags=[coll])
+    router = APIRouter(prefix=f"/v1/{coll}", tags=[coll], route_class=SessionRoute)
     formats = ", ".join(f.upper() for f in ALLOWED_FORMATS[kind])
 
     @router.post(
@@ -177,11 +179,12 @@ def make_router(kind: AssetKind) -> APIRouter:
         session: SessionDep,
         key: CurrentKey,
         settings: SettingsDep,
-        limit: Annotated[int | None, Query(ge=1, description="Page size (default and maximum are settings)")] = None,
-        offset: Annotated[int, Query(ge=0)] = 0,
+        limit: Annotated[int | None, Query(ge=1, le=MAX_QUERY_INT,
+                                           description="Page size (default and maximum are settings)")] = None,
+        offset: Annotated[int, Query(ge=0, le=MAX_QUERY_INT)] = 0,
         include_builtin: Annotated[bool, Query(description="List built-in bodies too (characters)")] = True,
     ) -> Page[AssetOut]:
-        limit = min(limit or settings.page_size_default, settings.page_size_max)
+        limit, offset = page_bounds(limit, offset, settings)
         cond = Asset.owner_id == key.id
         if include_builtin and kind == "character":
             cond = or_(cond, Asset.origin == "builtin")

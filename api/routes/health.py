@@ -15,11 +15,12 @@ from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.models import WorkerProcess
 from api.queue import IO_QUEUE, JOB_QUEUES
 from api.routes.assets import ALLOWED_FORMATS
+from api.routing import SessionRoute
 from api.schemas import KeyInfo, ServiceInfo
 from api.security import SIGNATURE_HEADER
 from api.serialize import RESULT_FILES
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=SessionRoute)
 
 
 def _version() -> str:

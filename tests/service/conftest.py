@@ -68,6 +68,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         "RETARGET_API_REAPER_INTERVAL_SECONDS": "1",
         "RETARGET_API_PROGRESS_MIN_INTERVAL_SECONDS": "0.1",
         "RETARGET_API_WEBHOOK_BACKOFF_BASE_SECONDS": "0.5",
+        "RETARGET_API_CALLBACK_ALLOWED_HOSTS": '["127.0.0.1"]',
         "OMP_NUM_THREADS": "1",
     })
     svc = Service(f"http://127.0.0.1:{port}", data_dir, database_url, env["REDIS_URL"], env, log_dir)
