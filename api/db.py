@@ -30,7 +30,7 @@ class PoolConfig:
     """Connection pool of each engine (per process)."""
 
     size: int = 10
-    max_overflow: int = 40
+    max_overflow: int = 30
     timeout_seconds: float = 10.0
 
 

@@ -45,11 +45,11 @@ class Settings(BaseSettings):
     )
     db_pool_size: int = Field(default=10, ge=1, description="Database connections each process keeps open")
     db_max_overflow: int = Field(
-        default=40, ge=0, description="Extra connections a process may open under load (pool size + overflow "
+        default=30, ge=0, description="Extra connections a process may open under load (pool size + overflow "
         "must be at least api_threads)"
     )
     db_pool_timeout_seconds: float = Field(default=10.0, gt=0, description="Longest wait for a free connection")
-    api_threads: int = Field(default=40, ge=1, description="Threads of an API process that run blocking work")
+    api_threads: int = Field(default=24, ge=1, description="Threads of an API process that run blocking work")
 
     # Uploads
     max_upload_bytes: int = Field(default=200 * 1024 * 1024, gt=0, description="Largest accepted upload")

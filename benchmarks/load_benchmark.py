@@ -1,6 +1,6 @@
 """Load benchmark of the API: many concurrent pollers and submitters, on SQLite and on PostgreSQL.
 
-Starts the API under uvicorn (one process, Redis broker on a spare database number, flushed) on a temporary data
+Starts the API under uvicorn (``--api-processes``, default 2: one per core; Redis broker on a spare database number, flushed) on a temporary data
 directory, with a motion, a character and one finished job written straight into the database, and no worker
 (submitted jobs go to the ``gpu`` queue; nothing runs them, so the figures are the API's own cost). The load
 generator is a small asyncio HTTP/1.1 client (one keep-alive connection per client), light enough to share the
@@ -185,14 +185,15 @@ async def run_level(port: int, groups: dict[str, tuple[int, bytes, int]], durati
     return {name: summary(samples[name], errors[name], duration, groups[name][0]) for name in groups}
 
 
-def start_api(root: Path, db_url: str, redis_db: int, port: int) -> subprocess.Popen[bytes]:
+def start_api(root: Path, db_url: str, redis_db: int, port: int, processes: int = 1) -> subprocess.Popen[bytes]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k not in ("DATABASE_URL",)}
     env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
                 "RETARGET_API_DATABASE_URL": db_url, "REDIS_URL": f"redis://127.0.0.1:6379/{redis_db}",
                 "RETARGET_API_MAX_ACTIVE_JOBS_PER_KEY": "10000000", "OMP_NUM_THREADS": "1"})
     log = open(root / "api.log", "ab")  # noqa: SIM115
     return subprocess.Popen([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--port", str(port),
-                             "--log-level", "warning", "--no-access-log", "--backlog", "4096"],
+                             "--log-level", "warning", "--no-access-log", "--backlog", "4096",
+                             "--workers", str(processes)],
                             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
@@ -207,7 +208,7 @@ def bench_database(kind: str, args: argparse.Namespace) -> dict[str, Any]:
             key, motion, character, job = seed(url)
             dispose_all()
             port = free_port()
-            api = start_api(root, url, redis_db, port)
+            api = start_api(root, url, redis_db, port, args.api_processes)
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:
                 try:
@@ -258,6 +259,7 @@ def main() -> None:
     ap.add_argument("--mixed-pollers", type=int, default=200)
     ap.add_argument("--mixed-submitters", type=int, default=64)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per level")
+    ap.add_argument("--api-processes", type=int, default=2, help="uvicorn worker processes of the API")
     ap.add_argument("--keep", action="store_true", help="keep the data directory and API log (printed)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "load.json")
     args = ap.parse_args()
@@ -265,7 +267,7 @@ def main() -> None:
     args.submitters = [int(x) for x in args.submitters.split(",") if x]
     results: dict[str, Any] = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "settings": {"duration_s": args.duration, "api_processes": 1, "broker": "redis"},
+        "settings": {"duration_s": args.duration, "api_processes": args.api_processes, "broker": "redis"},
         "runs": [],
     }
     print(f"Load benchmark ({os.cpu_count()} CPUs; API, Redis, database and load generator on this machine)")

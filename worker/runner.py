@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 import traceback
@@ -46,6 +47,21 @@ def json_safe(value: Any) -> Any:
         return str(value)
 
 
+def pid_alive(pid: int) -> bool:
+    """True when process ``pid`` exists on this machine and is not a zombie."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
 @dataclass
 class RunResult:
     """How a run ended: ``skipped`` (not ours to run), ``lost`` (reaper took it), or the job's final status."""
@@ -70,6 +86,7 @@ class JobRun:
         self._last_progress_write = 0.0
         self._last_stage: str | None = None
         self._last_cancel_check = 0.0
+        self.lost_webhook: str | None = None
 
     # Row updates ---------------------------------------------------------------------------------------------
     def _mine(self) -> tuple[Any, ...]:
@@ -82,10 +99,64 @@ class JobRun:
             n = updated(s,
                 update(Job)
                 .where(Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "queued")
-                .values(status="running", stage="starting", progress=0.0, worker=self.hostname, started_at=now,
-                        heartbeat_at=now, updated_at=now)
+                .values(status="running", stage="starting", progress=0.0, worker=self.hostname,
+                        worker_pid=os.getpid(), started_at=now, heartbeat_at=now, updated_at=now)
             )
         return n == 1
+
+    def take_over(self) -> bool:
+        """When this attempt is 'running' but the process that ran it is gone, queue the job again as the next
+        attempt (with a note saying so) and return True: this run then claims it.
+
+        That happens when a pool child is killed: Celery redelivers its message at once, while the row still
+        says running. On the same worker node the old process is checked directly; on another node this run
+        waits (at most ``redelivery_takeover_seconds`` plus two heartbeats) for its heartbeat to go stale. A
+        duplicate message of a run that is alive returns False."""
+        patience = self.settings.redelivery_takeover_seconds + 2 * self.settings.heartbeat_interval_seconds
+        deadline = time.monotonic() + patience
+        while True:
+            with session_scope(self.url) as s:
+                row = s.execute(select(Job.status, Job.attempt, Job.worker, Job.worker_pid, Job.heartbeat_at)
+                                .where(Job.id == self.job_id)).one_or_none()
+            if row is None or row.status != "running" or row.attempt != self.attempt:
+                return False
+            same_node = row.worker == self.hostname and row.worker_pid is not None
+            if same_node and row.worker_pid != os.getpid() and pid_alive(row.worker_pid):
+                return False
+            silent = (utcnow() - row.heartbeat_at).total_seconds() if row.heartbeat_at else float("inf")
+            if same_node or silent >= self.settings.redelivery_takeover_seconds:
+                return self._requeue_lost(row.worker_pid)
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(min(1.0, self.settings.heartbeat_interval_seconds))
+
+    def _requeue_lost(self, old_pid: int | None) -> bool:
+        lost, nxt = self.attempt, self.attempt + 1
+        now = utcnow()
+        mine = (Job.id == self.job_id, Job.attempt == lost, Job.status == "running", Job.worker_pid == old_pid)
+        if lost >= self.settings.max_job_attempts:
+            with session_scope(self.url) as s:
+                n = updated(s, update(Job).where(*mine).values(
+                    status="failed", error_kind="worker_lost", finished_at=now, updated_at=now,
+                    message=f"the worker process running this job stopped {lost} times (crash, out of memory or "
+                    "killed); it was not started again"))
+                if n:
+                    job = s.get(Job, self.job_id)
+                    assert job is not None
+                    s.refresh(job)
+                    self.lost_webhook = queue_webhook(s, job)
+            return False
+        with session_scope(self.url) as s:
+            n = updated(s, update(Job).where(*mine).values(
+                status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None,
+                started_at=None, heartbeat_at=None, updated_at=now, sent_at=now,
+                note=f"attempt {lost} stopped (its worker process was killed or crashed); running again as "
+                f"attempt {nxt}"))
+        if n != 1:
+            return False
+        log.warning("job %s: attempt %s lost its process; running it again as attempt %s", self.job_id, lost, nxt)
+        self.attempt = nxt
+        return True
 
     def beat(self) -> None:
         """Refresh the heartbeat; notice a cancel request or a lost job."""
@@ -174,9 +245,9 @@ class JobRun:
 
     def run(self, pipeline: Callable[..., Any] | None = None) -> RunResult:
         """Claim and run; ``pipeline`` defaults to retarget_core.pipeline.run_job (tests pass their own)."""
-        if not self.claim():
+        if not self.claim() and not (self.take_over() and self.claim()):
             log.info("job %s attempt %s is not queued: nothing to do", self.job_id, self.attempt)
-            return RunResult("skipped")
+            return RunResult("skipped", self.lost_webhook)
         hb = threading.Thread(target=self._heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
         hb.start()
         try:

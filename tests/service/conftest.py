@@ -75,6 +75,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     try:
         svc.start_worker("io", "io")
         svc.start_worker("cpu", "cpu")
+        svc.start_worker("webhooks", "webhooks")
         svc.start("api", ["-m", "uvicorn", "api.main:create_app", "--factory", "--host", "127.0.0.1", "--port",
                           str(port), "--log-level", "warning"])
         svc.wait_ready()
