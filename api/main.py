@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -12,10 +13,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
+from api import contract
 from api.db import configure_pool
 from api.keycache import KeyCache
 from api.queue import make_celery
-from api.routes import batches, characters, health, jobs, motions
+from api.routes import batches, characters, health, jobs, motions, reviews
 from api.settings import Settings, get_settings
 from api.storage import Storage
 
@@ -74,6 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.storage = storage
     app.state.key_cache = KeyCache(settings.key_cache_seconds)
+    app.state.upload_slots = asyncio.Semaphore(settings.max_concurrent_uploads)
     app.state.celery = make_celery(settings, main="retarget-api")
     if settings.cors_origins:
         app.add_middleware(
@@ -83,8 +86,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["*"],
             expose_headers=["Location", "Content-Disposition"],
         )
-    for module in (health, characters, motions, jobs, batches):
+    for module in (health, characters, motions, jobs, batches, reviews):
         app.include_router(module.router)
+    contract.install(app)
     if (settings.frontend_dir / "index.html").is_file():
         app.mount("/", SPAStaticFiles(directory=settings.frontend_dir, html=True), name="frontend")
     return app

@@ -29,6 +29,9 @@ class ErrorOut(BaseModel):
     """Every error: a sentence a person can act on."""
 
     detail: str = Field(examples=["not a recognised file type (expected BVH, glTF 2.0 / GLB or FBX)"])
+    errors: list[dict[str, Any]] | None = Field(
+        default=None, description="For an invalid request (422): each problem with its location (loc), message "
+        "(msg) and type")
 
 
 class Page(BaseModel, Generic[T]):

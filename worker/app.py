@@ -34,6 +34,7 @@ from worker.runner import JobRun
 log = logging.getLogger("worker")
 
 settings = get_settings()
+os.environ.setdefault("RETARGET_PARSE_BUDGET_BYTES", str(settings.parse_budget_bytes))  # read by the readers
 app = make_celery(settings, main="retarget-worker")
 
 

@@ -21,7 +21,8 @@ from sqlalchemy import select, update
 
 from api.db import session_scope, updated, utcnow
 from api.joblife import queue_webhook
-from api.models import Job
+from api.models import Asset, Job
+from api.redact import redact
 from api.settings import Settings
 from api.storage import Storage
 
@@ -45,6 +46,13 @@ def json_safe(value: Any) -> Any:
         return json_safe(value.item())
     except (AttributeError, ValueError):
         return str(value)
+
+
+def blob_names(session: Any, job: Job) -> dict[str, str]:
+    """sha256 -> the file name the job's owner gave each input (for messages)."""
+    ids = [i for i in (job.motion_id, job.target_character_id, job.source_character_id) if i]
+    rows = session.scalars(select(Asset).where(Asset.id.in_(ids))).all()
+    return {a.sha256: a.filename or a.name for a in rows if a.sha256}
 
 
 def pid_alive(pid: int) -> bool:
@@ -87,6 +95,7 @@ class JobRun:
         self._last_stage: str | None = None
         self._last_cancel_check = 0.0
         self.lost_webhook: str | None = None
+        self.blob_names: dict[str, str] = {}
 
     # Row updates ---------------------------------------------------------------------------------------------
     def _mine(self) -> tuple[Any, ...]:
@@ -266,6 +275,7 @@ class JobRun:
             job = s.get(Job, self.job_id)
             assert job is not None
             inputs = self.inputs(job)
+            self.blob_names = blob_names(s, job)
         out_dir = self.storage.job_run_dir(self.job_id, self.attempt)
         try:
             if pipeline is None:
@@ -306,14 +316,14 @@ class JobRun:
             "succeeded", stage="done", progress=1.0, outputs=files,
             summary=json_safe(getattr(outputs, "summary", None) or {}),
             stage_seconds=json_safe(getattr(outputs, "stage_seconds", None) or {}),
-            warnings=[str(w) for w in (getattr(outputs, "warnings", None) or [])],
+            warnings=[self._clean(str(w), inputs) for w in (getattr(outputs, "warnings", None) or [])],
         )
 
     def _clean(self, text: str, inputs: Any) -> str:
-        """Replace storage paths (hashes) in a message by what the user knows the files as."""
+        """Replace storage paths and blob names in a message by what the user knows the files as."""
         names = {inputs.motion_path: "the motion", inputs.target: "the target character",
                  inputs.source_character: "the source character"}
         for p, label in names.items():
             if isinstance(p, Path):
                 text = text.replace(str(p), label)
-        return text
+        return redact(text, self.blob_names, "the file")

@@ -17,7 +17,6 @@ import logging
 from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
-
 from urllib.parse import urlsplit
 
 import httpx
