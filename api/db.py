@@ -1,6 +1,8 @@
 """Database engine and sessions: SQLite by default (WAL, busy timeout), PostgreSQL when configured.
 
-Engines are cached per process id, so a forked worker child never reuses its parent's connections.
+Engines are cached per process id, so a forked worker child never reuses its parent's connections. Pool sizes
+come from :func:`configure_pool` (the API calls it with its settings; pool size + overflow must cover the API's
+thread count, so no thread ever waits for a connection that another waiting request holds).
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, cast
@@ -20,6 +23,24 @@ from api.settings import normalise_database_url
 
 _LOCK = threading.Lock()
 _ENGINES: dict[tuple[int, str], tuple[Engine, sessionmaker[Session]]] = {}
+
+
+@dataclass(frozen=True)
+class PoolConfig:
+    """Connection pool of each engine (per process)."""
+
+    size: int = 10
+    max_overflow: int = 30
+    timeout_seconds: float = 10.0
+
+
+_POOL = PoolConfig()
+
+
+def configure_pool(size: int, max_overflow: int, timeout_seconds: float) -> None:
+    """Set the pool of engines made from now on in this process (call before the first query)."""
+    global _POOL
+    _POOL = PoolConfig(size, max_overflow, timeout_seconds)
 
 
 def utcnow() -> datetime:
@@ -48,10 +69,14 @@ def make_engine(url: str) -> Engine:
         path = url.split("///", 1)[1] if "///" in url else ""
         if path and path != ":memory:":
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-        engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
+        pool: dict[str, Any] = {}
+        if path and path != ":memory:":
+            pool = {"pool_size": _POOL.size, "max_overflow": _POOL.max_overflow, "pool_timeout": _POOL.timeout_seconds}
+        engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False}, **pool)
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
+    return create_engine(url, pool_pre_ping=True, pool_size=_POOL.size, max_overflow=_POOL.max_overflow,
+                         pool_timeout=_POOL.timeout_seconds)
 
 
 def get_engine(url: str) -> Engine:

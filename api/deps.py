@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from typing import Annotated
 
 from celery import Celery
 from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyHeader
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
-from api.db import get_sessionmaker
+from api.db import get_sessionmaker, session_scope
+from api.keycache import KeyCache
 from api.models import ApiKey
-from api.security import find_key
 from api.settings import Settings
 from api.storage import Storage
 
@@ -25,7 +26,12 @@ def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
+async def get_session(request: Request) -> AsyncIterator[Session]:
+    """A session for the request, finished on the event loop.
+
+    The end (commit, or rollback on error) must not wait for a thread: under load every thread may be busy,
+    and a request that holds a connection while it waits for a thread to give it back starves the pool (the
+    threads wait for connections, the connections for threads). Ending a short transaction is quick."""
     session = get_sessionmaker(request.app.state.settings.resolved_database_url)()
     try:
         yield session
@@ -51,16 +57,32 @@ StorageDep = Annotated[Storage, Depends(get_storage)]
 CeleryDep = Annotated[Celery, Depends(get_celery)]
 
 
-def current_key(session: SessionDep, key: Annotated[str | None, Security(api_key_header)] = None) -> ApiKey:
-    """The key in the X-API-Key header; 401 when missing, unknown or revoked."""
+def _lookup(request: Request, key: str) -> ApiKey | None:
+    cache: KeyCache = request.app.state.key_cache
+    with session_scope(request.app.state.settings.resolved_database_url) as session:
+        return cache.lookup(session, key)
+
+
+async def current_key(request: Request, key: Annotated[str | None, Security(api_key_header)] = None) -> ApiKey:
+    """The key in the X-API-Key header; 401 when missing, unknown or revoked. Found keys are cached for
+    ``key_cache_seconds``; the lookup holds no connection once it returns."""
     if not key:
         raise HTTPException(401, "missing API key: send it in the X-API-Key header",
                             headers={"WWW-Authenticate": "X-API-Key"})
-    row = find_key(session, key)
+    if len(key) > 200:
+        raise HTTPException(401, "unknown or revoked API key", headers={"WWW-Authenticate": "X-API-Key"})
+    row = request.app.state.key_cache.get(key) or await run_in_threadpool(_lookup, request, key)
     if row is None:
         raise HTTPException(401, "unknown or revoked API key", headers={"WWW-Authenticate": "X-API-Key"})
-    session.commit()  # end the read: a long upload must not hold a database connection in a transaction
     return row
 
 
+async def optional_key(request: Request, key: Annotated[str | None, Security(api_key_header)] = None) -> ApiKey | None:
+    """The calling key when a valid one is sent, else None (for pages that show more to a key holder)."""
+    if not key or len(key) > 200:
+        return None
+    return request.app.state.key_cache.get(key) or await run_in_threadpool(_lookup, request, key)
+
+
 CurrentKey = Annotated[ApiKey, Depends(current_key)]
+OptionalKey = Annotated[ApiKey | None, Depends(optional_key)]

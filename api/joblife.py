@@ -11,7 +11,7 @@ from celery import Celery
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from api.db import updated, utcnow
+from api.db import session_scope, updated, utcnow
 from api.models import Job, WebhookDelivery
 from api.queue import TASK_DELIVER_WEBHOOK, TASK_RUN_JOB
 
@@ -26,6 +26,19 @@ def send_job(celery: Celery, job_id: str, attempt: int, queue: str) -> bool:
     except Exception:
         log.exception("could not send job %s (attempt %s); the reaper will send it again", job_id, attempt)
         return False
+
+
+def send_and_mark(url: str, celery: Celery, runs: list[tuple[str, int, str]]) -> None:
+    """Send runs (job id, attempt, queue) to the broker, then record ``sent_at`` for those it took. A run whose
+    send failed, or whose process died before recording it, is sent by the reaper within seconds."""
+    sent = [(job_id, attempt) for job_id, attempt, queue in runs if send_job(celery, job_id, attempt, queue)]
+    if not sent:
+        return
+    now = utcnow()
+    with session_scope(url) as s:
+        for job_id, attempt in sent:
+            s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.sent_at.is_(None))
+                      .values(sent_at=now))
 
 
 def queue_webhook(session: Session, job: Job) -> str | None:
@@ -79,8 +92,9 @@ def retry(session: Session, job: Job) -> bool:
         update(Job)
         .where(Job.id == job.id, Job.attempt == job.attempt, Job.status.in_(("failed", "canceled")))
         .values(status="queued", attempt=job.attempt + 1, stage=None, progress=0.0, message=None, error_kind=None,
-                cancel_requested=False, worker=None, started_at=None, heartbeat_at=None, finished_at=None,
-                outputs=None, summary=None, stage_seconds=None, warnings=None, sent_at=now, updated_at=now)
+                cancel_requested=False, worker=None, worker_pid=None, started_at=None, heartbeat_at=None,
+                finished_at=None, outputs=None, summary=None, stage_seconds=None, warnings=None, note=None,
+                sent_at=None, updated_at=now)
     )
     session.refresh(job)
     return bool(done)

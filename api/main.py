@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from anyio import to_thread
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
+from api import contract
+from api.db import configure_pool
+from api.keycache import KeyCache
 from api.queue import make_celery
-from api.routes import batches, characters, health, jobs, motions
+from api.routes import batches, characters, health, jobs, motions, reviews
 from api.settings import Settings, get_settings
 from api.storage import Storage
 
@@ -42,7 +50,15 @@ class SPAStaticFiles(StaticFiles):
 def create_app(settings: Settings | None = None) -> FastAPI:
     """A new application for ``settings`` (default: from the environment)."""
     settings = settings or get_settings()
+    configure_pool(settings.db_pool_size, settings.db_max_overflow, settings.db_pool_timeout_seconds)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
+        yield
+
     app = FastAPI(
+        lifespan=lifespan,
         title="Retarget service",
         version="1",
         description=DESCRIPTION,
@@ -59,6 +75,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     storage.ensure()
     app.state.settings = settings
     app.state.storage = storage
+    app.state.key_cache = KeyCache(settings.key_cache_seconds)
+    app.state.upload_slots = asyncio.Semaphore(settings.max_concurrent_uploads)
     app.state.celery = make_celery(settings, main="retarget-api")
     if settings.cors_origins:
         app.add_middleware(
@@ -68,8 +86,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["*"],
             expose_headers=["Location", "Content-Disposition"],
         )
-    for module in (health, characters, motions, jobs, batches):
+    for module in (health, characters, motions, jobs, batches, reviews):
         app.include_router(module.router)
+    contract.install(app)
     if (settings.frontend_dir / "index.html").is_file():
         app.mount("/", SPAStaticFiles(directory=settings.frontend_dir, html=True), name="frontend")
     return app

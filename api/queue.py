@@ -1,8 +1,8 @@
 """The Celery application as both sides configure it. The API only *sends* tasks, by name; it never imports worker/.
 
 Queues: ``cpu`` and ``gpu`` carry retarget jobs (a worker consumes the queue of its device kind); ``io`` carries short
-tasks the API waits for (parsing an upload, making a body) and webhook deliveries, so they never wait behind a
-long job.
+tasks the API waits for (parsing an upload, making a body), so they never wait behind a long job; ``webhooks``
+carries callback deliveries, so a receiver that hangs never holds the processes uploads need.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ TASK_DELIVER_WEBHOOK = "retarget.deliver_webhook"
 
 JOB_QUEUES = ("cpu", "gpu")
 IO_QUEUE = "io"
+WEBHOOK_QUEUE = "webhooks"
 
 
 def make_celery(settings: Settings, main: str = "retarget") -> Celery:
@@ -45,13 +46,13 @@ def make_celery(settings: Settings, main: str = "retarget") -> Celery:
         worker_prefetch_multiplier=1,
         task_soft_time_limit=settings.job_soft_time_limit_seconds,
         task_time_limit=settings.job_hard_time_limit_seconds,
-        task_queues=[Queue(name) for name in (*JOB_QUEUES, IO_QUEUE)],
+        task_queues=[Queue(name) for name in (*JOB_QUEUES, IO_QUEUE, WEBHOOK_QUEUE)],
         task_default_queue=IO_QUEUE,
         task_routes={
             TASK_INSPECT: {"queue": IO_QUEUE},
             TASK_MAKE_BODY: {"queue": IO_QUEUE},
             TASK_REGISTER_BUILTINS: {"queue": IO_QUEUE},
-            TASK_DELIVER_WEBHOOK: {"queue": IO_QUEUE},
+            TASK_DELIVER_WEBHOOK: {"queue": WEBHOOK_QUEUE},
         },
         broker_transport_options=transport_options,
         broker_connection_retry_on_startup=True,

@@ -29,6 +29,9 @@ class ErrorOut(BaseModel):
     """Every error: a sentence a person can act on."""
 
     detail: str = Field(examples=["not a recognised file type (expected BVH, glTF 2.0 / GLB or FBX)"])
+    errors: list[dict[str, Any]] | None = Field(
+        default=None, description="For an invalid request (422): each problem with its location (loc), message "
+        "(msg) and type")
 
 
 class Page(BaseModel, Generic[T]):
@@ -188,6 +191,8 @@ class JobOut(BaseModel):
     stage: str | None = Field(description="The pipeline stage running now (or last)")
     progress: float = Field(ge=0, le=1, description="Fraction of the job done")
     message: str | None = Field(description="Why it failed or was canceled, in words")
+    note: str | None = Field(default=None, description="Why it runs again (its earlier attempt's worker stopped), "
+                             "or why it waits (no worker serves its queue)")
     error_kind: Literal["input", "internal", "timeout", "worker_lost"] | None = Field(
         description="input: fix the files or options; internal: a bug, retrying may help; timeout; worker_lost"
     )

@@ -51,8 +51,8 @@ def asset_out(asset: Asset, base: str = "") -> AssetOut:
     )
 
 
-def job_out(job: Job, delivery: WebhookDelivery | None = None, base: str = "") -> JobOut:
-    """The public view of a job row."""
+def job_out(job: Job, delivery: WebhookDelivery | None = None, base: str = "", note: str | None = None) -> JobOut:
+    """The public view of a job row; ``note`` replaces the row's own note (e.g. no worker serves its queue)."""
     url = f"{base}/v1/jobs/{job.id}"
     results = None
     if job.status == "succeeded" and job.outputs:
@@ -85,6 +85,7 @@ def job_out(job: Job, delivery: WebhookDelivery | None = None, base: str = "") -
         stage=job.stage,
         progress=min(1.0, max(0.0, job.progress or 0.0)),
         message=job.message,
+        note=note or job.note,
         error_kind=job.error_kind,
         cancel_requested=job.cancel_requested,
         attempt=job.attempt,

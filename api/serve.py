@@ -1,7 +1,7 @@
 """``python -m api.serve``: the whole service on one machine, no Docker, no Redis.
 
-Upgrades the database, makes sure a development API key exists (printed), starts two worker processes (``cpu``
-jobs and ``io`` short tasks; restarted if they die) and serves the API (and the front end when built) with
+Upgrades the database, makes sure a development API key exists (printed), starts three workers (``cpu`` jobs,
+``io`` short tasks, ``webhooks`` deliveries; restarted if they die) and serves the API (and the front end when built) with
 uvicorn. Broker: Celery's SQLAlchemy transport on a SQLite file under the data directory, or Redis when REDIS_URL
 is set; database: SQLite under the data directory, or DATABASE_URL.
 """
@@ -72,11 +72,12 @@ class WorkerSupervisor(threading.Thread):
 
 
 def worker_commands(settings: Settings, concurrency: int) -> list[list[str]]:
-    """The job worker (cpu queue) and the short-task worker (io queue)."""
+    """The job worker (cpu queue), the short-task worker (io queue) and the callback worker (webhooks queue)."""
     py = sys.executable
     return [
         [py, "-m", "worker", "--queues", "cpu", "--concurrency", str(concurrency)],
         [py, "-m", "worker", "--queues", "io", "--concurrency", "2"],
+        [py, "-m", "worker", "--queues", "webhooks", "--concurrency", "8"],
     ]
 
 

@@ -43,6 +43,13 @@ class Settings(BaseSettings):
     broker_polling_interval_seconds: float = Field(
         default=0.2, gt=0, description="How often a worker polls the SQLite broker (embedded mode only)"
     )
+    db_pool_size: int = Field(default=10, ge=1, description="Database connections each process keeps open")
+    db_max_overflow: int = Field(
+        default=30, ge=0, description="Extra connections a process may open under load (pool size + overflow "
+        "must be at least api_threads)"
+    )
+    db_pool_timeout_seconds: float = Field(default=10.0, gt=0, description="Longest wait for a free connection")
+    api_threads: int = Field(default=24, ge=1, description="Threads of an API process that run blocking work")
 
     # Uploads
     max_upload_bytes: int = Field(default=200 * 1024 * 1024, gt=0, description="Largest accepted upload")
@@ -51,6 +58,22 @@ class Settings(BaseSettings):
         default=60.0, gt=0, description="How long an upload waits for a worker to parse it before answering 503"
     )
     inspect_time_limit_seconds: int = Field(default=120, gt=0, description="Hard time limit of a parse task")
+    upload_timeout_seconds: float = Field(default=600.0, gt=0, description="Longest time to receive one upload body")
+    upload_idle_timeout_seconds: float = Field(
+        default=30.0, gt=0, description="An upload that sends nothing for this long is cut off (408)"
+    )
+    max_concurrent_uploads: int = Field(
+        default=32, ge=1, description="Uploads one API process receives at once; more answer 503 with Retry-After"
+    )
+    parse_budget_bytes: int = Field(
+        default=300 * 1024 * 1024, gt=0,
+        description="Memory one parse may allocate above the worker's resting size (passed to the readers as "
+        "RETARGET_PARSE_BUDGET_BYTES)",
+    )
+    min_motion_fps: float = Field(default=1.0, gt=0, description="Lowest frame rate of an accepted motion")
+    max_motion_fps: float = Field(default=1000.0, gt=0, description="Highest frame rate of an accepted motion")
+    min_character_height_m: float = Field(default=0.2, gt=0, description="Shortest accepted character (metres)")
+    max_character_height_m: float = Field(default=10.0, gt=0, description="Tallest accepted character (metres)")
 
     # Jobs
     default_queue: QueueName = "cpu"
@@ -66,7 +89,7 @@ class Settings(BaseSettings):
     heartbeat_timeout_seconds: float = Field(
         default=60.0, gt=0, description="Silence after which a running job's worker is taken for dead"
     )
-    reaper_interval_seconds: float = Field(default=10.0, gt=0, description="How often each worker runs the reaper")
+    reaper_interval_seconds: float = Field(default=5.0, gt=0, description="How often each worker runs the reaper")
     requeue_queued_after_seconds: float = Field(
         default=900.0, gt=0, description="A queued job whose message was sent this long ago is sent again"
     )
@@ -74,16 +97,43 @@ class Settings(BaseSettings):
         default=0.5, ge=0, description="Least time between two progress writes of one job"
     )
     max_batch_jobs: int = Field(default=500, gt=0, description="Most jobs one batch may create")
+    max_job_frame_vertices: int = Field(
+        default=40_000_000, gt=0,
+        description="Output frames x target vertices one job may have (memory grows with it), checked at submission",
+    )
+    resend_unsent_after_seconds: float = Field(
+        default=5.0, gt=0, description="A queued job whose message was not confirmed sent this long is sent (again)"
+    )
+    redelivery_takeover_seconds: float = Field(
+        default=15.0, gt=0,
+        description="A redelivered job whose running attempt has been silent this long is run again at once",
+    )
+    idempotency_ttl_seconds: float = Field(default=86400.0, gt=0, description="How long an Idempotency-Key is kept")
+    max_idempotency_key_length: int = Field(default=200, ge=8, description="Longest Idempotency-Key header")
+
+    # Per-key quotas (429 when exceeded)
+    max_active_jobs_per_key: int = Field(default=2000, ge=1, description="Queued plus running jobs of one key")
+    max_stored_bytes_per_key: int = Field(
+        default=20 * 1024**3, ge=1, description="Bytes of uploaded files one key may keep"
+    )
 
     # Listing
     page_size_default: int = Field(default=50, gt=0)
     page_size_max: int = Field(default=500, gt=0)
+    max_list_offset: int = Field(default=1_000_000_000, gt=0, description="Largest offset of a list request")
 
     # Webhooks
     webhook_secret: str | None = Field(
         default=None, description="One signing secret for every key; default: each API key's own secret"
     )
-    webhook_timeout_seconds: float = Field(default=10.0, gt=0)
+    webhook_timeout_seconds: float = Field(default=5.0, gt=0, description="Whole time of one delivery attempt")
+    webhook_connect_timeout_seconds: float = Field(default=3.0, gt=0, description="Connecting to the receiver")
+    callback_allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="Host names (exact, lower case) callbacks may reach although they resolve to private, loopback "
+        "or link-local addresses (on-premises receivers); JSON list",
+    )
+    max_callback_url_length: int = Field(default=2000, ge=20, description="Longest callback_url")
     webhook_max_attempts: int = Field(default=8, ge=1)
     webhook_backoff_base_seconds: float = Field(default=2.0, gt=0, description="Delay before the 2nd attempt")
     webhook_backoff_max_seconds: float = Field(default=600.0, gt=0)
@@ -94,6 +144,18 @@ class Settings(BaseSettings):
     # Access
     dev_api_key: str | None = Field(
         default=None, description="A key created at start-up (embedded mode prints it); never set it in production"
+    )
+    key_cache_seconds: float = Field(
+        default=5.0, ge=0, description="How long an API process trusts a key it looked up (a revoked key works "
+        "this much longer); 0: look up every request"
+    )
+    review_link_secret: str | None = Field(
+        default=None, description="Key that signs review links; default: a random one kept in <data_dir>/secrets"
+    )
+    review_link_max_seconds: float = Field(default=30 * 86400.0, gt=0, description="Longest life of a review link")
+    review_link_default_seconds: float = Field(default=7 * 86400.0, gt=0, description="Life of a review link")
+    worker_queue_cache_seconds: float = Field(
+        default=2.0, ge=0, description="How long an API process reuses its list of the queues live workers serve"
     )
     cors_origins: list[str] = Field(default_factory=list, description="Allowed browser origins; empty: CORS off")
     frontend_dir: Path = Field(default=REPO_ROOT / "frontend" / "dist", description="Static front end served at /")

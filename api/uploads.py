@@ -1,14 +1,18 @@
 """Receive an upload (multipart form data or a raw body, chunked or not) straight to disk.
 
 The size cap is enforced while reading: a declared Content-Length over the cap is refused before reading, and
-a body (chunked or lying about its length) is cut off as soon as the file passes the cap. The file is hashed
-(SHA-256) while it is written, and its first bytes are kept for content sniffing.
+a body (chunked or lying about its length) is cut off as soon as the file, or the whole body (form fields,
+unnamed parts and anything after the closing boundary count too), passes the cap. A body that stalls for
+``idle_timeout`` seconds or takes longer than ``timeout`` in all is cut off (408). The file is hashed (SHA-256)
+while it is written, and its first bytes are kept for content sniffing.
 """
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import re
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +26,8 @@ MULTIPART_OVERHEAD_BYTES = 64 * 1024
 """Room for boundaries, part headers and small form fields on top of the file in a multipart body."""
 HEAD_BYTES = 64
 MAX_FIELD_BYTES = 4096
+MAX_BOUNDARY_CHARS = 70
+"""RFC 2046: a multipart boundary has 1 to 70 characters."""
 
 
 class UploadError(Exception):
@@ -93,7 +99,33 @@ def safe_filename(name: str | None) -> str | None:
     return base[:255] or None
 
 
-async def receive_upload(request: Request, dest: Path, max_bytes: int, chunk_bytes: int) -> ReceivedFile:
+async def bounded(stream: AsyncIterator[bytes], max_total: int, max_bytes: int, idle_timeout: float,
+                  timeout: float) -> AsyncIterator[bytes]:
+    """The chunks of ``stream``; UploadError 413 past ``max_total`` bytes in all, 408 when a chunk takes longer
+    than ``idle_timeout`` or the whole body longer than ``timeout``."""
+    deadline = time.monotonic() + timeout
+    total = 0
+    it = stream.__aiter__()
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise UploadError(408, f"the upload took longer than {timeout:.0f} s (setting "
+                                   "RETARGET_API_UPLOAD_TIMEOUT_SECONDS)")
+        try:
+            chunk = await asyncio.wait_for(it.__anext__(), min(idle_timeout, left))
+        except StopAsyncIteration:
+            return
+        except TimeoutError:
+            raise UploadError(408, f"the upload sent nothing for {min(idle_timeout, left):.0f} s (setting "
+                                   "RETARGET_API_UPLOAD_IDLE_TIMEOUT_SECONDS)") from None
+        total += len(chunk)
+        if total > max_total:
+            raise UploadError(413, too_large(max_bytes))
+        yield chunk
+
+
+async def receive_upload(request: Request, dest: Path, max_bytes: int, chunk_bytes: int,
+                         idle_timeout: float = 30.0, timeout: float = 600.0) -> ReceivedFile:
     """Read the request body into ``dest``; multipart needs a part named ``file``. Raises UploadError."""
     content_type = request.headers.get("content-type", "")
     is_multipart = content_type.lower().startswith("multipart/form-data")
@@ -106,13 +138,15 @@ async def receive_upload(request: Request, dest: Path, max_bytes: int, chunk_byt
         if length > max_bytes + (MULTIPART_OVERHEAD_BYTES if is_multipart else 0):
             raise UploadError(413, too_large(max_bytes))
     sink = _Sink(dest, max_bytes, chunk_bytes)
+    stream = bounded(request.stream(), max_bytes + (MULTIPART_OVERHEAD_BYTES if is_multipart else 0), max_bytes,
+                     idle_timeout, timeout)
     try:
         if is_multipart:
-            filename, fields = await _receive_multipart(request.stream(), content_type, sink)
+            filename, fields = await _receive_multipart(stream, content_type, sink)
         else:
             filename = safe_filename(request.query_params.get("filename") or request.headers.get("x-filename"))
             fields = {}
-            async for chunk in request.stream():
+            async for chunk in stream:
                 sink.add(chunk)
                 await sink.flush()
         await sink.flush(force=True)
@@ -135,6 +169,9 @@ async def _receive_multipart(
     boundary = params.get(b"boundary")
     if not boundary:
         raise UploadError(400, "multipart body without a boundary in Content-Type")
+    if len(boundary) > MAX_BOUNDARY_CHARS:
+        raise UploadError(400, f"the multipart boundary has {len(boundary)} characters; at most "
+                               f"{MAX_BOUNDARY_CHARS} are allowed (RFC 2046)")
 
     state: dict[str, object] = {"headers": {}, "hname": b"", "hvalue": b"", "name": None, "is_file": False,
                                 "data": bytearray()}

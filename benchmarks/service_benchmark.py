@@ -88,6 +88,9 @@ class Service:
             self.env["REDIS_URL"] = f"redis://127.0.0.1:6379/{db}"
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         (root / "logs").mkdir()
+        with session_scope(self.db_url) as s:
+            _, key = create_key(s, "benchmark")
+        self.headers = {"X-API-Key": key}
 
     def start(self, name: str, args: list[str]) -> None:
         log = open(self.root / "logs" / f"{name}.log", "ab")  # noqa: SIM115
@@ -106,7 +109,7 @@ class Service:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             try:
-                r = httpx.get(f"{self.base}/readyz", timeout=5)
+                r = httpx.get(f"{self.base}/readyz", timeout=5, headers=self.headers)
                 live = [w for w in r.json()["checks"]["workers"].get("live", []) if "cpu" in w["queues"]]
                 if r.status_code == 200 and len(live) >= cpu_workers:
                     return
@@ -206,9 +209,7 @@ def main() -> None:
             svc.start_worker("cpu1", "cpu")
             svc.start_api()
             svc.wait_ready(1)
-            with session_scope(svc.db_url) as s:
-                _, key = create_key(s, "benchmark")
-            headers = {"X-API-Key": key}
+            headers = svc.headers
             http = httpx.Client(base_url=svc.base, headers=headers, timeout=120)
             with open(data / args.character, "rb") as fh:
                 character = http.post("/v1/characters", files={"file": (Path(args.character).name, fh)}).json()["id"]

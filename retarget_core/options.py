@@ -24,10 +24,12 @@ StageSwitches = create_model(  # one bool per stage of :data:`retarget_core.stag
 class RetargetOptions(BaseModel):
     """What a user may choose for one motion x character job."""
 
-    fps: float | None = Field(default=None, gt=0, le=240, description="Output frame rate; default: the source's")
-    frame_start: int = Field(default=0, ge=0, description="First source frame (inclusive)")
-    frame_end: int | None = Field(default=None, ge=1, description="Last source frame (exclusive); default: the end")
-    clip: str | None = Field(default=None, description="Animation name or index when the motion file has several")
+    fps: float | None = Field(default=None, ge=1, le=240, description="Output frame rate; default: the source's")
+    frame_start: int = Field(default=0, ge=0, le=10_000_000, description="First source frame (inclusive)")
+    frame_end: int | None = Field(default=None, ge=1, le=10_000_000,
+                                  description="Last source frame (exclusive); default: the end")
+    clip: str | None = Field(default=None, max_length=300,
+                             description="Animation name or index when the motion file has several")
     in_place: bool = Field(default=False, description="Remove horizontal root motion")
     eso_iterations: int = Field(default=30, ge=0, le=1000, description="Encoder-space optimisation steps per window")
     stages: StageSwitches = Field(default_factory=StageSwitches)

@@ -1,7 +1,7 @@
 """The Celery worker: tasks by name, plus a maintenance thread (worker heartbeat row and the reaper).
 
-Start it with ``python -m worker --queues cpu`` (jobs) and ``python -m worker --queues io`` (uploads, bodies,
-webhooks), or with ``celery -A worker.app worker -Q cpu``.
+Start it with ``python -m worker --queues cpu`` (jobs), ``python -m worker --queues io`` (uploads, bodies) and
+``python -m worker --queues webhooks`` (callback deliveries, a thread pool), or with ``celery -A worker.app worker``.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from worker.runner import JobRun
 log = logging.getLogger("worker")
 
 settings = get_settings()
+os.environ.setdefault("RETARGET_PARSE_BUDGET_BYTES", str(settings.parse_budget_bytes))  # read by the readers
 app = make_celery(settings, main="retarget-worker")
 
 
@@ -78,7 +79,8 @@ def register_builtins() -> list[str]:
         return []
 
 
-@app.task(name=TASK_DELIVER_WEBHOOK, time_limit=120, soft_time_limit=110)
+@app.task(name=TASK_DELIVER_WEBHOOK, time_limit=int(4 * settings.webhook_timeout_seconds) + 10,
+          soft_time_limit=int(3 * settings.webhook_timeout_seconds) + 5)
 def deliver_webhook(delivery_id: str, attempt: int = 1) -> str:
     """One attempt of a webhook delivery; schedules the next attempt with backoff on failure."""
     outcome, delay = webhooks.deliver(settings, delivery_id, attempt)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from sqlalchemy.exc import IntegrityError
 
 from api.db import session_scope, utcnow
 from api.models import Asset, WorkerCall
+from api.redact import redact, redact_all
 from api.settings import Settings
 from api.storage import Storage
 from worker.runner import json_safe
@@ -56,21 +58,50 @@ def inspect_blob(settings: Settings, ref: str, kind: str, label: str | None) -> 
     return json_safe(info)
 
 
+def range_problem(info: dict[str, Any], kind: str, settings: Settings) -> str | None:
+    """What makes a parsed file unusable although it could be read (frame rate, duration, height), or None."""
+    if kind == "motion":
+        fps, duration = info.get("fps"), info.get("duration_s")
+        if not isinstance(fps, (int, float)) or not settings.min_motion_fps <= fps <= settings.max_motion_fps:
+            return (f"the frame rate is {fps!r} frames per second, outside {settings.min_motion_fps:g} to "
+                    f"{settings.max_motion_fps:g} (settings RETARGET_API_MIN_MOTION_FPS / _MAX_MOTION_FPS)")
+        if not isinstance(duration, (int, float)) or not math.isfinite(duration):
+            return f"the duration ({duration!r} s) is not a finite number"
+        return None
+    height = info.get("height_m")
+    if not isinstance(height, (int, float)) or not (
+            settings.min_character_height_m <= height <= settings.max_character_height_m):
+        shown = f"{height:.4g} m" if isinstance(height, (int, float)) else repr(height)
+        return (f"the character is {shown} tall, outside {settings.min_character_height_m:g} to "
+                f"{settings.max_character_height_m:g} m (settings RETARGET_API_MIN_CHARACTER_HEIGHT_M / "
+                "_MAX_CHARACTER_HEIGHT_M); check the file's units")
+    return None
+
+
 def run_inspect(settings: Settings, call_id: str, ref: str, kind: str, label: str | None) -> None:
-    """The inspect task: answer ok with the info, or error with a message naming the problem."""
+    """The inspect task: answer ok with the info, or error with a message naming the problem (and the file by
+    the name the user gave it, never by its storage path or blob name)."""
     from retarget_core.errors import RetargetError
 
     path = Storage(settings.data_dir).blob_path(ref)
+    name = label or "the file"
+    names = {ref.split(".", 1)[0]: name}
     try:
         info = inspect_blob(settings, ref, kind, label)
     except RetargetError as exc:
-        answer(settings, call_id, error=user_message(exc, path, label))
+        answer(settings, call_id, error=redact(user_message(exc, path, label), names, name))
+    except MemoryError:
+        answer(settings, call_id, error=f"{name}: reading it needs more memory than a parse may use")
     except Exception as exc:
         log.exception("inspect of %s failed", ref)
-        answer(settings, call_id, error=user_message(
-            RuntimeError(f"the file could not be read ({type(exc).__name__}: {exc})"), path, label))
+        answer(settings, call_id, error=redact(f"{name}: the file could not be read ({type(exc).__name__})",
+                                               names, name))
     else:
-        answer(settings, call_id, {"info": info})
+        problem = range_problem(info, kind, settings)
+        if problem:
+            answer(settings, call_id, error=f"{name}: {problem}")
+        else:
+            answer(settings, call_id, {"info": redact_all(info, names, name)})
 
 
 def store_file(storage: Storage, path: Path, fmt: str) -> tuple[str, str, int]:

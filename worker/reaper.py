@@ -5,7 +5,8 @@ with many; each change is a conditional UPDATE, so two reapers never both re-sen
 
 - a running job whose heartbeat is older than the timeout: canceled if a cancel was asked, failed if it ran
   past the hard time limit or used up its attempts, otherwise queued again as the next attempt and re-sent;
-- a queued job whose message was never sent (broker down at submission) or was sent long ago: re-sent
+- a queued job whose message was not recorded as sent ``resend_unsent_after_seconds`` after its last change
+  (broker down at submission, or the API died between commit and send), or was sent long ago: sent again
   (a duplicate message is harmless: a run only starts if the row is still queued at that attempt);
 - a webhook delivery still pending long after its planned attempt: re-sent;
 - old worker rows and worker-call rows: deleted.
@@ -20,15 +21,15 @@ from datetime import timedelta
 from celery import Celery
 from sqlalchemy import delete, or_, select, update
 
+from api import idempotency
 from api.db import session_scope, updated, utcnow
-from api.joblife import queue_webhook, send_job, send_webhook
+from api.joblife import queue_webhook, send_and_mark, send_webhook
 from api.models import Job, WebhookDelivery, WorkerCall, WorkerProcess
 from api.settings import Settings
 
 log = logging.getLogger(__name__)
 
 WEBHOOK_GRACE_SECONDS = 300.0
-NEVER_SENT_GRACE_SECONDS = 10.0
 CLEANUP_AFTER = timedelta(days=1)
 
 
@@ -72,8 +73,10 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
                 # read before the UPDATE: the ORM synchronises the loaded object with it
                 job_id, nxt, queue, worker, last = job.id, job.attempt + 1, job.queue, job.worker, job.heartbeat_at
                 n = updated(s, update(Job).where(*mine).values(
-                    status="queued", attempt=nxt, stage=None, progress=0.0, worker=None,
-                    started_at=None, heartbeat_at=None, sent_at=now, updated_at=now))
+                    status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None,
+                    started_at=None, heartbeat_at=None, sent_at=None, updated_at=now,
+                    note=f"attempt {nxt - 1} was lost (its worker stopped answering); running again as "
+                    f"attempt {nxt}"))
                 if n:
                     report.requeued.append(job_id)
                     to_send.append((job_id, nxt, queue))
@@ -87,15 +90,18 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
                 deliveries.append(queue_webhook(s, job))
 
         resend_before = now - timedelta(seconds=settings.requeue_queued_after_seconds)
-        never_before = now - timedelta(seconds=NEVER_SENT_GRACE_SECONDS)
+        never_before = now - timedelta(seconds=settings.resend_unsent_after_seconds)
         waiting = s.scalars(select(Job).where(
             Job.status == "queued",
-            or_(Job.sent_at < resend_before, (Job.sent_at.is_(None)) & (Job.created_at < never_before)),
+            or_(Job.sent_at < resend_before, (Job.sent_at.is_(None)) & (Job.updated_at < never_before)),
         )).all()
         for job in waiting:
             job_id, attempt, queue = job.id, job.attempt, job.queue
-            n = updated(s, update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.status == "queued")
-                          .values(sent_at=now))
+            # claim the re-send (another reaper may be here too); sent_at is recorded again once it is sent
+            n = updated(s, update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.status == "queued",
+                                             Job.sent_at == job.sent_at if job.sent_at else Job.sent_at.is_(None),
+                                             Job.updated_at == job.updated_at)
+                          .values(sent_at=None, updated_at=now))
             if n:
                 report.resent.append(job_id)
                 to_send.append((job_id, attempt, queue))
@@ -114,9 +120,9 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
         old = now - CLEANUP_AFTER
         s.execute(delete(WorkerProcess).where(WorkerProcess.last_seen < old))
         s.execute(delete(WorkerCall).where(WorkerCall.created_at < old))
+        idempotency.purge(s, settings.idempotency_ttl_seconds)
 
-    for job_id, attempt, queue in to_send:
-        send_job(celery, job_id, attempt, queue)
+    send_and_mark(url, celery, to_send)
     for delivery_id in deliveries:
         send_webhook(celery, delivery_id)
     for d_id, attempt in webhook_sends:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 import traceback
@@ -20,7 +21,8 @@ from sqlalchemy import select, update
 
 from api.db import session_scope, updated, utcnow
 from api.joblife import queue_webhook
-from api.models import Job
+from api.models import Asset, Job
+from api.redact import redact
 from api.settings import Settings
 from api.storage import Storage
 from retarget_core.jobs import OUTPUT_FILES
@@ -44,6 +46,28 @@ def json_safe(value: Any) -> Any:
         return json_safe(value.item())
     except (AttributeError, ValueError):
         return str(value)
+
+
+def blob_names(session: Any, job: Job) -> dict[str, str]:
+    """sha256 -> the file name the job's owner gave each input (for messages)."""
+    ids = [i for i in (job.motion_id, job.target_character_id, job.source_character_id) if i]
+    rows = session.scalars(select(Asset).where(Asset.id.in_(ids))).all()
+    return {a.sha256: a.filename or a.name for a in rows if a.sha256}
+
+
+def pid_alive(pid: int) -> bool:
+    """True when process ``pid`` exists on this machine and is not a zombie."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 @dataclass
@@ -70,6 +94,8 @@ class JobRun:
         self._last_progress_write = 0.0
         self._last_stage: str | None = None
         self._last_cancel_check = 0.0
+        self.lost_webhook: str | None = None
+        self.blob_names: dict[str, str] = {}
 
     # Row updates ---------------------------------------------------------------------------------------------
     def _mine(self) -> tuple[Any, ...]:
@@ -82,10 +108,64 @@ class JobRun:
             n = updated(s,
                 update(Job)
                 .where(Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "queued")
-                .values(status="running", stage="starting", progress=0.0, worker=self.hostname, started_at=now,
-                        heartbeat_at=now, updated_at=now)
+                .values(status="running", stage="starting", progress=0.0, worker=self.hostname,
+                        worker_pid=os.getpid(), started_at=now, heartbeat_at=now, updated_at=now)
             )
         return n == 1
+
+    def take_over(self) -> bool:
+        """When this attempt is 'running' but the process that ran it is gone, queue the job again as the next
+        attempt (with a note saying so) and return True: this run then claims it.
+
+        That happens when a pool child is killed: Celery redelivers its message at once, while the row still
+        says running. On the same worker node the old process is checked directly; on another node this run
+        waits (at most ``redelivery_takeover_seconds`` plus two heartbeats) for its heartbeat to go stale. A
+        duplicate message of a run that is alive returns False."""
+        patience = self.settings.redelivery_takeover_seconds + 2 * self.settings.heartbeat_interval_seconds
+        deadline = time.monotonic() + patience
+        while True:
+            with session_scope(self.url) as s:
+                row = s.execute(select(Job.status, Job.attempt, Job.worker, Job.worker_pid, Job.heartbeat_at)
+                                .where(Job.id == self.job_id)).one_or_none()
+            if row is None or row.status != "running" or row.attempt != self.attempt:
+                return False
+            same_node = row.worker == self.hostname and row.worker_pid is not None
+            if same_node and row.worker_pid != os.getpid() and pid_alive(row.worker_pid):
+                return False
+            silent = (utcnow() - row.heartbeat_at).total_seconds() if row.heartbeat_at else float("inf")
+            if same_node or silent >= self.settings.redelivery_takeover_seconds:
+                return self._requeue_lost(row.worker_pid)
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(min(1.0, self.settings.heartbeat_interval_seconds))
+
+    def _requeue_lost(self, old_pid: int | None) -> bool:
+        lost, nxt = self.attempt, self.attempt + 1
+        now = utcnow()
+        mine = (Job.id == self.job_id, Job.attempt == lost, Job.status == "running", Job.worker_pid == old_pid)
+        if lost >= self.settings.max_job_attempts:
+            with session_scope(self.url) as s:
+                n = updated(s, update(Job).where(*mine).values(
+                    status="failed", error_kind="worker_lost", finished_at=now, updated_at=now,
+                    message=f"the worker process running this job stopped {lost} times (crash, out of memory or "
+                    "killed); it was not started again"))
+                if n:
+                    job = s.get(Job, self.job_id)
+                    assert job is not None
+                    s.refresh(job)
+                    self.lost_webhook = queue_webhook(s, job)
+            return False
+        with session_scope(self.url) as s:
+            n = updated(s, update(Job).where(*mine).values(
+                status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None,
+                started_at=None, heartbeat_at=None, updated_at=now, sent_at=now,
+                note=f"attempt {lost} stopped (its worker process was killed or crashed); running again as "
+                f"attempt {nxt}"))
+        if n != 1:
+            return False
+        log.warning("job %s: attempt %s lost its process; running it again as attempt %s", self.job_id, lost, nxt)
+        self.attempt = nxt
+        return True
 
     def beat(self) -> None:
         """Refresh the heartbeat; notice a cancel request or a lost job."""
@@ -177,9 +257,9 @@ class JobRun:
 
     def run(self, pipeline: Callable[..., Any] | None = None) -> RunResult:
         """Claim and run; ``pipeline`` defaults to retarget_core.pipeline.run_job (tests pass their own)."""
-        if not self.claim():
+        if not self.claim() and not (self.take_over() and self.claim()):
             log.info("job %s attempt %s is not queued: nothing to do", self.job_id, self.attempt)
-            return RunResult("skipped")
+            return RunResult("skipped", self.lost_webhook)
         hb = threading.Thread(target=self._heartbeat_loop, name=f"heartbeat-{self.job_id}", daemon=True)
         hb.start()
         try:
@@ -198,6 +278,7 @@ class JobRun:
             job = s.get(Job, self.job_id)
             assert job is not None
             inputs = self.inputs(job)
+            self.blob_names = blob_names(s, job)
         out_dir = self.storage.job_run_dir(self.job_id, self.attempt)
         try:
             if pipeline is None:
@@ -238,14 +319,14 @@ class JobRun:
             "succeeded", stage="done", progress=1.0, outputs=files,
             summary=json_safe(getattr(outputs, "summary", None) or {}),
             stage_seconds=json_safe(getattr(outputs, "stage_seconds", None) or {}),
-            warnings=[str(w) for w in (getattr(outputs, "warnings", None) or [])],
+            warnings=[self._clean(str(w), inputs) for w in (getattr(outputs, "warnings", None) or [])],
         )
 
     def _clean(self, text: str, inputs: Any) -> str:
-        """Replace storage paths (hashes) in a message by what the user knows the files as."""
+        """Replace storage paths and blob names in a message by what the user knows the files as."""
         names = {inputs.motion_path: "the motion", inputs.target: "the target character",
                  inputs.source_character: "the source character"}
         for p, label in names.items():
             if isinstance(p, Path):
                 text = text.replace(str(p), label)
-        return text
+        return redact(text, self.blob_names, "the file")

@@ -1,5 +1,10 @@
 """Webhook delivery: POST the job as signed JSON to its callback URL; retried with exponential backoff.
 
+The URL is checked again here, after DNS resolution (api.callbacks): only public addresses unless the host is
+allowed by the setting ``callback_allowed_hosts``; the request goes to the checked address (Host header and TLS
+server name are the URL's host), redirects are not followed, and the timeouts are short. What a failure records
+is a category (refused, unreachable, timed out, HTTP status), never the remote's own error text.
+
 Each attempt carries its number; an attempt runs only if the row is pending at the attempt before it, so a
 duplicated message (re-sent by the reaper) never sends twice. Receivers should still treat the delivery id
 (header ``X-Retarget-Delivery``) as the key for de-duplication.
@@ -12,10 +17,12 @@ import logging
 from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 from sqlalchemy import select, update
 
+from api.callbacks import CallbackRefused, resolve
 from api.db import session_scope, updated, utcnow
 from api.models import ApiKey, Job, WebhookDelivery
 from api.security import SIGNATURE_HEADER, sign_payload
@@ -28,6 +35,44 @@ log = logging.getLogger(__name__)
 def backoff_seconds(settings: Settings, attempt: int) -> float:
     """Delay between attempt ``attempt`` (failed) and the next: base * 2**(attempt-1), capped."""
     return float(min(settings.webhook_backoff_max_seconds, settings.webhook_backoff_base_seconds * 2 ** (attempt - 1)))
+
+
+def _post(settings: Settings, url: str, body: bytes, headers: dict[str, str],
+          post: Callable[..., Any] | None) -> tuple[int | None, str | None]:
+    """One POST to a checked address; (status code, error category or None when delivered)."""
+    try:
+        target = resolve(url, settings.callback_allowed_hosts)
+    except CallbackRefused as exc:
+        return None, str(exc)
+    timeout = httpx.Timeout(settings.webhook_timeout_seconds, connect=settings.webhook_connect_timeout_seconds)
+    extensions = {"sni_hostname": target.host} if url.startswith("https:") else {}
+    try:
+        sender = post or _httpx_post
+        response = sender(target.url, content=body, headers={**headers, "Host": _host_header(url)},
+                          timeout=timeout, extensions=extensions)
+    except httpx.TimeoutException:
+        return None, "timed out"
+    except httpx.ConnectError:
+        return None, "could not connect"
+    except Exception:  # TLS, protocol or anything else: never the remote's own words
+        return None, "the delivery failed (network or TLS error)"
+    code = response.status_code
+    if 300 <= code < 400:
+        return code, f"HTTP {code} (redirects are not followed)"
+    if not 200 <= code < 300:
+        return code, f"HTTP {code}"
+    return code, None
+
+
+def _httpx_post(url: str, *, content: bytes, headers: dict[str, str], timeout: httpx.Timeout,
+                extensions: dict[str, Any]) -> httpx.Response:
+    with httpx.Client(timeout=timeout, follow_redirects=False, trust_env=False) as client:
+        return client.post(url, content=content, headers=headers, extensions=extensions)
+
+
+def _host_header(url: str) -> str:
+    parts = urlsplit(url)
+    return parts.netloc.rsplit("@", 1)[-1]
 
 
 def deliver(settings: Settings, delivery_id: str, attempt: int,
@@ -61,17 +106,7 @@ def deliver(settings: Settings, delivery_id: str, attempt: int,
         "X-Retarget-Attempt": str(attempt),
         SIGNATURE_HEADER: sign_payload(secret, body),
     }
-    code: int | None = None
-    error: str | None = None
-    try:
-        sender = post or httpx.post
-        response = sender(target, content=body, headers=headers, timeout=settings.webhook_timeout_seconds,
-                          follow_redirects=False)
-        code = response.status_code
-        if not 200 <= code < 300:
-            error = f"HTTP {code}"
-    except Exception as exc:  # connection refused, timeout, bad URL ...
-        error = f"{type(exc).__name__}: {exc}"[:500]
+    code, error = _post(settings, target, body, headers, post)
     now = utcnow()
     with session_scope(url) as s:
         d = s.get(WebhookDelivery, delivery_id)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -13,10 +14,14 @@ from starlette.concurrency import run_in_threadpool
 
 from api.db import session_scope
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
+from api.limits import check_storage
 from api.models import ApiKey, Asset, Job, new_id
+from api.pages import MAX_QUERY_INT, page_bounds
 from api.queue import TASK_INSPECT
+from api.routing import SessionRoute
 from api.schemas import AssetOut, ErrorOut, Page
 from api.serialize import ASSET_CONTENT_TYPES, asset_out, collection
+from api.settings import Settings
 from api.storage import Storage
 from api.uploads import UploadError, receive_upload
 from api.worker_calls import WorkerCallFailed, WorkerUnavailable, call_worker
@@ -79,13 +84,21 @@ def _drop_blob_if_unused(url: str, storage: Storage, ref: str, sha256: str) -> N
             storage.delete_blob(ref)
 
 
-def _known_info(url: str, kind: str, sha256: str) -> dict[str, Any] | None:
-    """What an earlier parse of the same bytes as the same kind found (content-addressed, so it is the same)."""
+def _known_info(url: str, kind: str, sha256: str, owner_id: str) -> dict[str, Any] | None:
+    """What an earlier parse of the same bytes as the same kind *by the same key* found. Another key's parse is
+    never reused: its answer would carry that key's file name, and a faster answer would tell that someone else
+    has the file."""
     with session_scope(url) as s:
         row = s.scalar(
-            select(Asset).where(Asset.sha256 == sha256, Asset.kind == kind).order_by(Asset.created_at).limit(1)
+            select(Asset).where(Asset.sha256 == sha256, Asset.kind == kind, Asset.owner_id == owner_id)
+            .order_by(Asset.created_at).limit(1)
         )
         return dict(row.info) if row is not None and row.info else None
+
+
+def _check_storage(url: str, owner_id: str, size: int, settings: Settings) -> None:
+    with session_scope(url) as s:
+        check_storage(s, owner_id, size, settings)
 
 
 def _insert_asset(url: str, **values: Any) -> AssetOut:
@@ -99,7 +112,7 @@ def _insert_asset(url: str, **values: Any) -> AssetOut:
 def make_router(kind: AssetKind) -> APIRouter:
     """The router of ``/v1/characters`` or ``/v1/motions``."""
     coll = collection(kind)
-    router = APIRouter(prefix=f"/v1/{coll}", tags=[coll])
+    router = APIRouter(prefix=f"/v1/{coll}", tags=[coll], route_class=SessionRoute)
     formats = ", ".join(f.upper() for f in ALLOWED_FORMATS[kind])
 
     @router.post(
@@ -112,10 +125,12 @@ def make_router(kind: AssetKind) -> APIRouter:
         "found (joints, mapping report, frames, fps, height, warnings). Identical files are stored once.",
         responses={
             400: {"model": ErrorOut, "description": "Malformed request (no file part, empty body)"},
+            408: {"model": ErrorOut, "description": "The body stalled or took too long"},
             413: {"model": ErrorOut, "description": "Over the upload size limit"},
             415: {"model": ErrorOut, "description": f"Not a {kind} file type ({formats})"},
             422: {"model": ErrorOut, "description": "The parser rejected the file; the message says why"},
-            503: {"model": ErrorOut, "description": "No worker answered in time"},
+            429: {"model": ErrorOut, "description": "Over the key's storage quota"},
+            503: {"model": ErrorOut, "description": "No worker answered in time, or too many uploads at once"},
         },
         openapi_extra=UPLOAD_BODY,
     )
@@ -131,11 +146,22 @@ def make_router(kind: AssetKind) -> APIRouter:
     ) -> AssetOut:
         del filename  # read by receive_upload from the query string; declared here for the OpenAPI document
         url = settings.resolved_database_url
+        slots: asyncio.Semaphore = request.app.state.upload_slots
+        if slots.locked():
+            raise HTTPException(503, f"{settings.max_concurrent_uploads} uploads are being received; try again in a "
+                                "moment (setting RETARGET_API_MAX_CONCURRENT_UPLOADS)", headers={"Retry-After": "5"})
         tmp = storage.temp_path()
         try:
-            received = await receive_upload(request, tmp, settings.max_upload_bytes, settings.upload_chunk_bytes)
+            async with slots:
+                received = await receive_upload(request, tmp, settings.max_upload_bytes, settings.upload_chunk_bytes,
+                                                settings.upload_idle_timeout_seconds, settings.upload_timeout_seconds)
         except UploadError as exc:
             raise HTTPException(exc.status, exc.detail) from exc
+        try:
+            await run_in_threadpool(_check_storage, url, key.id, received.size, settings)
+        except HTTPException:
+            tmp.unlink(missing_ok=True)
+            raise
         label = received.filename or "the upload"
         try:
             fmt = detect_format_bytes(received.head, label)
@@ -148,7 +174,7 @@ def make_router(kind: AssetKind) -> APIRouter:
         ref = storage.blob_ref(received.sha256, fmt)
         _, created = await run_in_threadpool(storage.commit_blob, tmp, ref)
 
-        info = await run_in_threadpool(_known_info, url, kind, received.sha256)
+        info = await run_in_threadpool(_known_info, url, kind, received.sha256, key.id)
         if info is None:
             try:
                 result = await call_worker(
@@ -163,6 +189,8 @@ def make_router(kind: AssetKind) -> APIRouter:
             except WorkerUnavailable as exc:
                 raise HTTPException(503, str(exc)) from exc
             info = result["info"]
+        elif received.filename:
+            info["name"] = Path(received.filename).stem
         display = received.fields.get("name") or name or Path(received.filename or f"{kind}.{fmt}").stem
         out = await run_in_threadpool(
             _insert_asset, url,
@@ -177,11 +205,12 @@ def make_router(kind: AssetKind) -> APIRouter:
         session: SessionDep,
         key: CurrentKey,
         settings: SettingsDep,
-        limit: Annotated[int | None, Query(ge=1, description="Page size (default and maximum are settings)")] = None,
-        offset: Annotated[int, Query(ge=0)] = 0,
+        limit: Annotated[int | None, Query(ge=1, le=MAX_QUERY_INT,
+                                           description="Page size (default and maximum are settings)")] = None,
+        offset: Annotated[int, Query(ge=0, le=MAX_QUERY_INT)] = 0,
         include_builtin: Annotated[bool, Query(description="List built-in bodies too (characters)")] = True,
     ) -> Page[AssetOut]:
-        limit = min(limit or settings.page_size_default, settings.page_size_max)
+        limit, offset = page_bounds(limit, offset, settings)
         cond = Asset.owner_id == key.id
         if include_builtin and kind == "character":
             cond = or_(cond, Asset.origin == "builtin")

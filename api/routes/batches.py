@@ -8,14 +8,19 @@ from fastapi import APIRouter, HTTPException, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from api import idempotency
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep
+from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, send_webhook
-from api.models import ApiKey, Batch, Job
+from api.limits import check_active_jobs
+from api.models import ApiKey, Batch, Job, new_id
+from api.pages import MAX_QUERY_INT, page_bounds
 from api.routes.jobs import dispatch, latest_deliveries, new_job
+from api.routing import SessionRoute
 from api.schemas import BatchCreate, BatchOut, ErrorOut, Page
 from api.serialize import batch_out
 
-router = APIRouter(prefix="/v1/batches", tags=["batches"])
+router = APIRouter(prefix="/v1/batches", tags=["batches"], route_class=SessionRoute)
 
 
 def find_batch(session: Session, key: ApiKey, batch_id: str) -> Batch:
@@ -40,13 +45,21 @@ def _out(session: Session, batch: Batch) -> BatchOut:
     responses={422: {"model": ErrorOut}},
 )
 def create_batch(body: BatchCreate, response: Response, session: SessionDep, key: CurrentKey,
-                 settings: SettingsDep, celery: CeleryDep) -> BatchOut:
+                 settings: SettingsDep, celery: CeleryDep, idempotency_key: IdempotencyKey = None) -> BatchOut:
     n = len(body.motion_ids) * len(body.target_character_ids)
     if n > settings.max_batch_jobs:
         raise HTTPException(422, f"the batch would create {n} jobs; the limit is {settings.max_batch_jobs} "
                                  "(setting RETARGET_API_MAX_BATCH_JOBS)")
-    batch = Batch(owner_id=key.id, name=body.name)
+    scope, fp = "POST /v1/batches", fingerprint(body.model_dump_json())
+    existing = idempotency.find(session, key.id, idempotency_key, scope, fp)
+    if existing:
+        response.headers[REPLAYED_HEADER] = "true"
+        response.headers["Location"] = f"/v1/batches/{existing}"
+        return _out(session, find_batch(session, key, existing))
+    check_active_jobs(session, key.id, n, settings)
+    batch = Batch(id=new_id("bat"), owner_id=key.id, name=body.name)
     session.add(batch)
+    idempotency.remember(session, key.id, idempotency_key, scope, fp, batch.id)
     session.flush()
     jobs = [
         new_job(session, key, settings, m, c, body.source_character_id, body.options, body.callback_url,
@@ -55,7 +68,7 @@ def create_batch(body: BatchCreate, response: Response, session: SessionDep, key
         for c in body.target_character_ids
     ]
     session.flush()
-    dispatch(session, celery, jobs)
+    dispatch(session, celery, jobs, settings.resolved_database_url)
     response.headers["Location"] = f"/v1/batches/{batch.id}"
     return _out(session, batch)
 
@@ -65,10 +78,10 @@ def list_batches(
     session: SessionDep,
     key: CurrentKey,
     settings: SettingsDep,
-    limit: Annotated[int | None, Query(ge=1)] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int | None, Query(ge=1, le=MAX_QUERY_INT)] = None,
+    offset: Annotated[int, Query(ge=0, le=MAX_QUERY_INT)] = 0,
 ) -> Page[BatchOut]:
-    limit = min(limit or settings.page_size_default, settings.page_size_max)
+    limit, offset = page_bounds(limit, offset, settings)
     where = Batch.owner_id == key.id
     total = session.scalar(select(func.count()).select_from(Batch).where(where)) or 0
     rows = session.scalars(

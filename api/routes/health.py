@@ -11,16 +11,17 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import select, text
 
 from api.db import utcnow
-from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
+from api.deps import CeleryDep, CurrentKey, OptionalKey, SessionDep, SettingsDep, StorageDep
 from api.models import WorkerProcess
-from api.queue import IO_QUEUE, JOB_QUEUES
+from api.queue import IO_QUEUE, JOB_QUEUES, WEBHOOK_QUEUE
 from api.routes.assets import ALLOWED_FORMATS
+from api.routing import SessionRoute
 from api.schemas import KeyInfo, ServiceInfo, StageOut
 from api.security import SIGNATURE_HEADER
 from api.serialize import RESULT_FILES
 from retarget_core.stages import STAGES
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=SessionRoute)
 
 
 def _version() -> str:
@@ -39,43 +40,49 @@ def healthz() -> dict[str, str]:
     "/readyz",
     summary="Readiness: database, broker, storage and a live worker",
     description="200 when every check passes, 503 otherwise; the body lists each check. A worker counts as live "
-    "when its heartbeat is younger than RETARGET_API_HEARTBEAT_TIMEOUT_SECONDS.",
+    "when its heartbeat is younger than RETARGET_API_HEARTBEAT_TIMEOUT_SECONDS. Worker host names are listed only "
+    "for a request with a valid X-API-Key.",
     responses={503: {"description": "At least one check failed"}},
 )
-def readyz(session: SessionDep, settings: SettingsDep, storage: StorageDep, celery: CeleryDep) -> JSONResponse:
+def readyz(session: SessionDep, settings: SettingsDep, storage: StorageDep, celery: CeleryDep,
+           key: OptionalKey = None) -> JSONResponse:
     checks: dict[str, dict[str, Any]] = {}
     try:
         session.execute(text("SELECT 1"))
         checks["database"] = {"ok": True}
     except Exception as exc:
-        checks["database"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        checks["database"] = {"ok": False, "error": type(exc).__name__}
     try:
         with celery.connection_for_write() as conn:
             conn.ensure_connection(max_retries=1, timeout=3)
             conn.default_channel  # opens a channel: proves the broker answers  # noqa: B018
         checks["broker"] = {"ok": True, "transport": "sqlite (embedded)" if settings.embedded_broker else "redis"}
     except Exception as exc:
-        checks["broker"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        checks["broker"] = {"ok": False, "error": type(exc).__name__}
     try:
         storage.check_writable()
         checks["storage"] = {"ok": True}
-    except Exception as exc:
-        checks["storage"] = {"ok": False, "error": str(exc)}
+    except Exception:
+        checks["storage"] = {"ok": False, "error": "the data directory is not writable"}
     try:
         cutoff = utcnow() - timedelta(seconds=settings.heartbeat_timeout_seconds)
         live = session.scalars(select(WorkerProcess).where(WorkerProcess.last_seen >= cutoff)).all()
         queues = sorted({q for w in live for q in w.queues.split(",") if q})
         checks["workers"] = {
             "ok": bool(live) and any(q in queues for q in JOB_QUEUES) and IO_QUEUE in queues,
-            "live": [{"hostname": w.hostname, "queues": w.queues.split(",")} for w in live],
+            "live_count": len(live),
             "queues": queues,
         }
+        if key is not None:  # host names only for a key holder
+            checks["workers"]["live"] = [{"hostname": w.hostname, "queues": w.queues.split(",")} for w in live]
+        if WEBHOOK_QUEUE not in queues:
+            checks["workers"]["warning"] = f"no live worker consumes the {WEBHOOK_QUEUE!r} queue: callbacks wait"
         if not checks["workers"]["ok"]:
             checks["workers"]["error"] = (
                 "no live worker" if not live else f"no live worker consumes a job queue and the {IO_QUEUE!r} queue"
             )
     except Exception as exc:
-        checks["workers"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        checks["workers"] = {"ok": False, "error": type(exc).__name__}
     ok = all(c["ok"] for c in checks.values())
     return JSONResponse({"status": "ready" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
 

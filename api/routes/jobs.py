@@ -6,20 +6,30 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import FileResponse
-from sqlalchemy import func, select, update
+from pydantic import BaseModel
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
-from api.db import utcnow
+from api import idempotency
+from api.callbacks import CallbackRefused, check_url
+from api.db import session_scope
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
-from api.joblife import cancel, queue_webhook, retry, send_job, send_webhook
-from api.models import ApiKey, Asset, Job, WebhookDelivery
+from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
+from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
+from api.limits import check_active_jobs, check_job_size
+from api.livequeues import waiting_note
+from api.models import ApiKey, Asset, Job, WebhookDelivery, new_id
+from api.pages import MAX_QUERY_INT, page_bounds
+from api.routing import SessionRoute
 from api.schemas import ErrorOut, JobCreate, JobOut, JobStatus, Page
 from api.serialize import RESULT_FILES, job_out
 from api.settings import Settings
 from api.storage import Storage
 from retarget_core.options import RetargetOptions
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=SessionRoute)
 
 
 def resolve_input(session: Session, key: ApiKey, field: str, kind: str, asset_id: str) -> tuple[Asset, str]:
@@ -35,32 +45,41 @@ def resolve_input(session: Session, key: ApiKey, field: str, kind: str, asset_id
     return asset, Storage.blob_ref(asset.sha256, asset.format)
 
 
+def check_callback(callback_url: Any, settings: Settings) -> str | None:
+    """The callback URL as text when a job may name it; 422 with the reason otherwise."""
+    if not callback_url:
+        return None
+    try:
+        return check_url(str(callback_url), settings.callback_allowed_hosts, settings.max_callback_url_length)
+    except CallbackRefused as exc:
+        raise HTTPException(422, str(exc)) from exc
+
+
 def new_job(session: Session, key: ApiKey, settings: Settings, motion_id: str, target_id: str,
             source_id: str | None, options: RetargetOptions, callback_url: Any, queue: str | None,
             batch_id: str | None = None) -> Job:
-    """A queued job row (not yet sent) after checking its inputs."""
-    _, motion_ref = resolve_input(session, key, "motion_id", "motion", motion_id)
-    _, target_ref = resolve_input(session, key, "target_character_id", "character", target_id)
+    """A queued job row (not yet sent: ``sent_at`` is set once the broker took its message) after checking its
+    inputs, its size and its callback URL."""
+    motion, motion_ref = resolve_input(session, key, "motion_id", "motion", motion_id)
+    target, target_ref = resolve_input(session, key, "target_character_id", "character", target_id)
     source_ref = None
     if source_id:
         _, source_ref = resolve_input(session, key, "source_character_id", "character", source_id)
+    check_job_size(motion, target, options, settings)
     job = Job(
-        owner_id=key.id, batch_id=batch_id, motion_id=motion_id, target_character_id=target_id,
+        id=new_id("job"), owner_id=key.id, batch_id=batch_id, motion_id=motion_id, target_character_id=target_id,
         source_character_id=source_id, motion_ref=motion_ref, target_ref=target_ref, source_ref=source_ref,
         options=options.model_dump(mode="json"), queue=queue or settings.default_queue,
-        callback_url=str(callback_url) if callback_url else None, status="queued", sent_at=utcnow(),
+        callback_url=check_callback(callback_url, settings), status="queued", sent_at=None,
     )
     session.add(job)
     return job
 
 
-def dispatch(session: Session, celery: Any, jobs: list[Job]) -> None:
-    """Commit the rows, then send them; a job that could not be sent keeps sent_at empty for the reaper."""
+def dispatch(session: Session, celery: Any, jobs: list[Job], url: str) -> None:
+    """Commit the rows, then send them and record that they were sent."""
     session.commit()
-    for job in jobs:
-        if not send_job(celery, job.id, job.attempt, job.queue):
-            session.execute(update(Job).where(Job.id == job.id, Job.attempt == job.attempt).values(sent_at=None))
-    session.commit()
+    send_and_mark(url, celery, [(job.id, job.attempt, job.queue) for job in jobs])
 
 
 def find_job(session: Session, key: ApiKey, job_id: str) -> Job:
@@ -80,8 +99,47 @@ def latest_deliveries(session: Session, job_ids: list[str]) -> dict[str, Webhook
     return {d.job_id: d for d in rows}
 
 
-def out(session: Session, job: Job) -> JobOut:
-    return job_out(job, latest_deliveries(session, [job.id]).get(job.id))
+def note_for(job: Job, settings: Settings) -> str | None:
+    """The job's note, or for a queued job on a queue no live worker serves, a note saying so."""
+    if job.status == "queued" and not job.note:
+        return waiting_note(job.queue, settings)
+    return job.note
+
+
+def out(session: Session, job: Job, settings: Settings) -> JobOut:
+    delivery = latest_deliveries(session, [job.id]).get(job.id) if job.callback_url else None
+    return job_out(job, delivery, note=note_for(job, settings))
+
+
+def json_response(model: BaseModel, status_code: int = 200, headers: dict[str, str] | None = None) -> Response:
+    """A response body already validated by its model (FastAPI would validate it again, in another thread)."""
+    return Response(model.model_dump_json(), status_code=status_code, media_type="application/json",
+                    headers=headers)
+
+
+def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, idem: str | None
+                ) -> tuple[JobOut, bool]:
+    url = settings.resolved_database_url
+    scope, fp = "POST /v1/jobs", fingerprint(body.model_dump_json())
+    try:
+        with session_scope(url) as s:
+            existing = idempotency.find(s, key.id, idem, scope, fp)
+            if existing:
+                return out(s, find_job(s, key, existing), settings), True
+            check_active_jobs(s, key.id, 1, settings)
+            job = new_job(s, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
+                          body.options, body.callback_url, body.queue)
+            idempotency.remember(s, key.id, idem, scope, fp, job.id)
+    except IntegrityError:
+        if not idem:
+            raise
+        with session_scope(url) as s:  # the same key won by a concurrent request
+            existing = idempotency.find(s, key.id, idem, scope, fp)
+            if existing is None:
+                raise
+            return out(s, find_job(s, key, existing), settings), True
+    send_and_mark(url, celery, [(job.id, job.attempt, job.queue)])
+    return job_out(job, None, note=note_for(job, settings)), False
 
 
 @router.post(
@@ -90,17 +148,19 @@ def out(session: Session, job: Job) -> JobOut:
     response_model=JobOut,
     summary="Submit a job",
     description="Queue one motion on one target character. Answers 202 at once with the job (Location header "
-    "and links.self point at it); poll it or pass a callback_url.",
-    responses={422: {"model": ErrorOut, "description": "An input does not exist or the options are invalid"}},
+    "and links.self point at it); poll it or pass a callback_url. With an Idempotency-Key header, a repeated "
+    "request answers with the job the first one made.",
+    responses={422: {"model": ErrorOut, "description": "An input does not exist, the options are invalid or the "
+                     "job is over a size limit"},
+               429: {"model": ErrorOut, "description": "Over the key's quota of queued and running jobs"}},
 )
-def create_job(body: JobCreate, response: Response, session: SessionDep, key: CurrentKey, settings: SettingsDep,
-               celery: CeleryDep) -> JobOut:
-    job = new_job(session, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
-                  body.options, body.callback_url, body.queue)
-    dispatch(session, celery, [job])
-    session.refresh(job)
-    response.headers["Location"] = f"/v1/jobs/{job.id}"
-    return out(session, job)
+async def create_job(body: JobCreate, key: CurrentKey, settings: SettingsDep, celery: CeleryDep,
+                     idempotency_key: IdempotencyKey = None) -> Response:
+    job, replayed = await run_in_threadpool(_create_job, settings, celery, key, body, idempotency_key)
+    headers = {"Location": f"/v1/jobs/{job.id}"}
+    if replayed:
+        headers[REPLAYED_HEADER] = "true"
+    return json_response(job, 202, headers)
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs", description="Newest first.")
@@ -110,10 +170,10 @@ def list_jobs(
     settings: SettingsDep,
     status: Annotated[JobStatus | None, Query(description="Only jobs in this state")] = None,
     batch_id: Annotated[str | None, Query(description="Only jobs of this batch")] = None,
-    limit: Annotated[int | None, Query(ge=1)] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int | None, Query(ge=1, le=MAX_QUERY_INT)] = None,
+    offset: Annotated[int, Query(ge=0, le=MAX_QUERY_INT)] = 0,
 ) -> Page[JobOut]:
-    limit = min(limit or settings.page_size_default, settings.page_size_max)
+    limit, offset = page_bounds(limit, offset, settings)
     where = [Job.owner_id == key.id]
     if status:
         where.append(Job.status == status)
@@ -125,14 +185,20 @@ def list_jobs(
     ).all()
     deliveries = latest_deliveries(session, [j.id for j in rows])
     return Page[JobOut](
-        items=[job_out(j, deliveries.get(j.id)) for j in rows], total=total, limit=limit, offset=offset,
+        items=[job_out(j, deliveries.get(j.id), note=note_for(j, settings)) for j in rows], total=total,
+        limit=limit, offset=offset,
         next_offset=offset + limit if offset + limit < total else None,
     )
 
 
+def _get_job(settings: Settings, key: ApiKey, job_id: str) -> JobOut:
+    with session_scope(settings.resolved_database_url) as s:
+        return out(s, find_job(s, key, job_id), settings)
+
+
 @router.get("/{job_id}", response_model=JobOut, summary="Get a job", responses={404: {"model": ErrorOut}})
-def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
-    return out(session, find_job(session, key, job_id))
+async def get_job(job_id: str, key: CurrentKey, settings: SettingsDep) -> Response:
+    return json_response(await run_in_threadpool(_get_job, settings, key, job_id))
 
 
 @router.post(
@@ -143,7 +209,7 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
     "stage boundary (its status turns canceled then). A finished job answers 409.",
     responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
 )
-def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, celery: CeleryDep) -> JobOut:
+def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, celery: CeleryDep, settings: SettingsDep) -> JobOut:
     job = find_job(session, key, job_id)
     result = cancel(session, job)
     if result == "finished":
@@ -151,7 +217,7 @@ def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, celery: Celery
     delivery = queue_webhook(session, job) if result == "canceled" else None
     session.commit()
     send_webhook(celery, delivery)
-    return out(session, job)
+    return out(session, job, settings)
 
 
 @router.post(
@@ -161,12 +227,18 @@ def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, celery: Celery
     summary="Run a failed or canceled job again",
     responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
 )
-def retry_job(job_id: str, session: SessionDep, key: CurrentKey, celery: CeleryDep) -> JobOut:
+def retry_job(job_id: str, response: Response, session: SessionDep, key: CurrentKey, celery: CeleryDep,
+              settings: SettingsDep, idempotency_key: IdempotencyKey = None) -> JobOut:
     job = find_job(session, key, job_id)
+    scope, fp = "POST /v1/jobs/{id}/retry", fingerprint(job_id)
+    if idempotency.find(session, key.id, idempotency_key, scope, fp):
+        response.headers[REPLAYED_HEADER] = "true"
+        return out(session, job, settings)
     if not retry(session, job):
         raise HTTPException(409, f"only failed or canceled jobs can be retried; job {job_id!r} is {job.status}")
-    dispatch(session, celery, [job])
-    return out(session, job)
+    idempotency.remember(session, key.id, idempotency_key, scope, fp, job.id)
+    dispatch(session, celery, [job], settings.resolved_database_url)
+    return out(session, job, settings)
 
 
 def _result(job_id: str, name: str, session: Session, key: ApiKey, storage: Storage) -> FileResponse:

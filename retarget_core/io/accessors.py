@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import binascii
 import math
+import os
 import urllib.parse
 from typing import Any
 
@@ -32,6 +33,41 @@ TYPE_SHAPES: dict[str, tuple[int, int]] = {
     "SCALAR": (1, 1), "VEC2": (1, 2), "VEC3": (1, 3), "VEC4": (1, 4), "MAT2": (2, 2), "MAT3": (3, 3), "MAT4": (4, 4),
 }  # fmt: skip
 SPARSE_INDEX_TYPES = (5121, 5123, 5125)
+
+PARSE_BUDGET_ENV = "RETARGET_PARSE_BUDGET_BYTES"
+DEFAULT_PARSE_BUDGET_BYTES = 300 * 1024 * 1024
+"""Memory one parse may allocate for decoded data (the service sets it from its own setting)."""
+MAX_PERCENT_ENCODED_URI_CHARS = 1024 * 1024
+"""Longest percent-encoded (not base64) data: URI: decoding those is slow and memory-hungry; use base64."""
+DECODED_BYTES_PER_VALUE = 16
+"""What one decoded accessor value costs: the decoded copy and the float64 arrays made from it."""
+
+
+def parse_budget_bytes() -> int:
+    """The parse budget in bytes (environment ``RETARGET_PARSE_BUDGET_BYTES``, default 300 MiB)."""
+    try:
+        return max(1, int(os.environ.get(PARSE_BUDGET_ENV, DEFAULT_PARSE_BUDGET_BYTES)))
+    except ValueError:
+        return DEFAULT_PARSE_BUDGET_BYTES
+
+
+class ParseBudget:
+    """Counts what a parse is about to allocate and refuses it, before allocating, past the budget."""
+
+    def __init__(self, label: str | None, total: int | None = None) -> None:
+        self.total = parse_budget_bytes() if total is None else total
+        self.used = 0
+        self.label = label
+
+    def charge(self, nbytes: int, what: str) -> None:
+        """Account for ``nbytes``; LimitExceededError naming ``what`` when the budget would be passed."""
+        if self.used + nbytes > self.total:
+            raise LimitExceededError(
+                f"{what} needs about {max(1, nbytes >> 20)} MiB of memory; with what the file needed before, that "
+                f"is over the parse budget of {self.total >> 20} MiB (setting RETARGET_PARSE_BUDGET_BYTES)",
+                self.label,
+            )
+        self.used += nbytes
 
 
 def _align4(n: int) -> int:
@@ -55,6 +91,10 @@ def decode_data_uri(uri: str, what: str, label: str | None) -> tuple[bytes, str 
         if "base64" in params[1:]:
             data = base64.b64decode(payload, validate=False)
         else:
+            if len(payload) > MAX_PERCENT_ENCODED_URI_CHARS:
+                raise LimitExceededError(
+                    f"{what} has a percent-encoded data: URI of {len(payload)} characters, over the limit of "
+                    f"{MAX_PERCENT_ENCODED_URI_CHARS}; embed large buffers as base64 or use GLB", label)
             data = urllib.parse.unquote_to_bytes(payload)
     except (binascii.Error, ValueError) as exc:
         raise InvalidFileError(f"{what} has a data: URI that is not valid base64 ({exc})", label) from exc
@@ -74,6 +114,7 @@ class GltfData:
         self.doc = doc
         self.label = label
         self.max_elements = max_elements
+        self.budget = ParseBudget(label)
         self._check_external_images()
         self.buffers = self._resolve_buffers(bin_chunk)
 
@@ -155,6 +196,7 @@ class GltfData:
             else:
                 if not isinstance(uri, str):
                     raise self.fail(f"buffers[{i}].uri must be a string")
+                self.budget.charge(len(uri), f"buffers[{i}] (a data: URI)")
                 data, _ = decode_data_uri(uri, f"buffers[{i}]", self.label)
             if len(data) < length:
                 raise self.fail(f"buffers[{i}] declares {length} bytes but only {len(data)} are present (truncated?)")
@@ -241,6 +283,7 @@ class GltfData:
                 f"{name} has {count} x {cols * rows} values, over the limit of {self.max_elements} (max_accessor_elements)",
                 self.label,
             )
+        self.budget.charge(count * cols * rows * DECODED_BYTES_PER_VALUE, f"{name} ({count} x {atype})")
         normalized = acc.get("normalized", False)
         if not isinstance(normalized, bool):
             raise self.fail(f"{name}.normalized must be a boolean")

@@ -46,6 +46,7 @@ import torch
 from retarget_core import rotations as rot
 from retarget_core.config import get_settings
 from retarget_core.errors import InvalidFileError, LimitExceededError, UnsupportedFileError
+from retarget_core.io.accessors import ParseBudget
 from retarget_core.kinematics import forward_kinematics
 from retarget_core.motion import Motion
 from retarget_core.skeleton import Skeleton
@@ -55,6 +56,15 @@ MAX_HIERARCHY_LINE = 64 * 1024
 
 MAX_CHARS_PER_VALUE = 48
 """Generous upper bound on the characters one MOTION value takes, separator included."""
+
+MIN_FRAME_TIME = 1e-4
+"""Shortest accepted Frame Time (s): 10,000 frames per second."""
+MAX_FRAME_TIME = 10.0
+"""Longest accepted Frame Time (s): one frame every 10 seconds."""
+MAX_COORDINATE = 1e6
+"""Largest OFFSET or position channel value (file units; a kilometre in centimetres is 1e5)."""
+BYTES_PER_FRAME_JOINT = 160
+"""What reading one joint of one frame costs (float64 translations and quaternions, Euler conversions)."""
 
 END_SUFFIX = "_End"
 
@@ -416,7 +426,11 @@ def read_bvh(path: str | Path, *, name: str | None = None) -> Motion:
         raise lines.error(f"frame time {frame_time_text[:40]!r} is not a number") from None
     if not math.isfinite(frame_time) or frame_time <= 0.0:
         raise lines.error(f"frame time must be a positive number, found {frame_time_text[:40]!r}")
+    if not MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME:
+        raise lines.error(f"Frame Time {frame_time_text[:40]} s is outside {MIN_FRAME_TIME:g} to {MAX_FRAME_TIME:g} s "
+                          f"({1 / MAX_FRAME_TIME:g} to {1 / MIN_FRAME_TIME:g} frames per second)")
     fps = _snapped_fps(frame_time_text, frame_time)
+    _check_offsets(joints, label)
 
     num_joints = len(joints)
     if frames * num_joints > settings.max_accessor_elements:
@@ -424,6 +438,7 @@ def read_bvh(path: str | Path, *, name: str | None = None) -> Motion:
             f"{frames} frames x {num_joints} joints is over the limit of {settings.max_accessor_elements} (setting max_accessor_elements)",
             label,
         )
+    ParseBudget(label).charge(frames * num_joints * BYTES_PER_FRAME_JOINT, f"{frames} frames x {num_joints} joints")
     num_channels = sum(len(j.channels) for j in joints)
     if num_channels == 0:
         raise InvalidFileError("no joint has channels: the file holds no motion", label)
@@ -436,9 +451,37 @@ def read_bvh(path: str | Path, *, name: str | None = None) -> Motion:
         raise InvalidFileError(
             f"frame {frame + 1}: channel {channel} of joint {joint!r} is {values[frame, column]}", label
         )
+    _check_positions(joints, values, label)
 
     _unique_names(joints, label)
     return _build_motion(joints, values, fps, name if name is not None else path.stem)
+
+
+def _check_offsets(joints: list[_Joint], label: str) -> None:
+    """Refuse a skeleton without size (every OFFSET 0) or with offsets no real skeleton has."""
+    offsets = np.array([j.offset for j in joints], dtype=np.float64)
+    if len(joints) > 1 and not np.abs(offsets[1:]).any():
+        raise InvalidFileError("every OFFSET below the root is 0: the skeleton has no size", label)
+    big = float(np.abs(offsets).max()) if offsets.size else 0.0
+    if big > MAX_COORDINATE:
+        raise InvalidFileError(f"an OFFSET of {big:.3g} is over the limit of {MAX_COORDINATE:g} (not a skeleton)", label)
+
+
+def _check_positions(joints: list[_Joint], values: np.ndarray, label: str) -> None:
+    """Refuse position channels no real motion has (|value| over MAX_COORDINATE)."""
+    columns = [c for c, (_, channel) in enumerate(_channel_owners(joints)) if channel.endswith("position")]
+    if not columns:
+        return
+    pos = np.abs(values[:, columns])
+    if float(pos.max()) > MAX_COORDINATE:
+        frame, k = (int(v) for v in np.unravel_index(int(np.argmax(pos)), pos.shape))
+        joint, channel = _column_owner(joints, columns[k])
+        raise InvalidFileError(f"frame {frame + 1}: {channel} of joint {joint!r} is {values[frame, columns[k]]:.3g}, "
+                               f"over the limit of {MAX_COORDINATE:g} (not a motion)", label)
+
+
+def _channel_owners(joints: list[_Joint]) -> list[tuple[str, str]]:
+    return [(j.name, c) for j in joints for c in j.channels]
 
 
 def _column_owner(joints: list[_Joint], column: int) -> tuple[str, str]:

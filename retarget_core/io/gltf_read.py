@@ -46,6 +46,10 @@ SUPPORTED_EXTENSIONS = {
 }
 COMMON_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 72.0, 90.0, 100.0, 120.0, 144.0, 240.0)
 MAX_INFLUENCES = 4
+MAX_ANIMATION_CHANNELS = 20_000
+"""Most channels one animation may have (a skeleton at the joint limit needs 3 per joint)."""
+MAX_COORDINATE = 1e6
+"""Largest node translation or translation keyframe (file units): larger is not a character or a motion."""
 _VERTEX_CHUNK = 65_536
 
 
@@ -174,6 +178,17 @@ class _Nodes:
             p = self.parents[p]
         return out
 
+    def with_ancestors(self, chosen: set[int]) -> set[int]:
+        """``chosen`` and every ancestor of its nodes, in time linear in the result (a walk up stops at a node
+        already taken: its ancestors are taken, or will be when it is reached itself)."""
+        out = set(chosen)
+        for node in chosen:
+            p = self.parents[node]
+            while p >= 0 and p not in out:
+                out.add(p)
+                p = self.parents[p]
+        return out
+
 
 def _read_nodes(data: GltfData, notes: list[str]) -> _Nodes:
     nodes = data.array("nodes")
@@ -201,6 +216,9 @@ def _read_nodes(data: GltfData, notes: list[str]) -> _Nodes:
             t[i], q[i], s[i] = _decompose(m)
         else:
             t[i] = data.get_floats(node, "translation", 3, f"nodes[{i}]", [0.0, 0.0, 0.0])
+            if float(np.abs(t[i]).max()) > MAX_COORDINATE:
+                raise data.fail(f"nodes[{i}].translation is {float(np.abs(t[i]).max()):.3g} from its parent, over "
+                                f"the limit of {MAX_COORDINATE:g}")
             qi = data.get_floats(node, "rotation", 4, f"nodes[{i}]", [0.0, 0.0, 0.0, 1.0])
             norm = float(np.linalg.norm(qi))
             if norm < 1e-6:
@@ -230,10 +248,7 @@ def _world(nodes: _Nodes, needed: list[int], t: np.ndarray, q: np.ndarray, s: np
 
 
 def _with_ancestors(nodes: _Nodes, chosen: set[int]) -> list[int]:
-    out = set(chosen)
-    for node in chosen:
-        out.update(nodes.ancestors(node))
-    return list(out)
+    return list(nodes.with_ancestors(chosen))
 
 
 def _bake(world: np.ndarray, notes: list[str], what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -617,6 +632,9 @@ def _read_animation(data: GltfData, a: int, n_nodes: int, notes: list[str]) -> t
     samplers, channels = anim.get("samplers", []), anim.get("channels", [])
     if not isinstance(samplers, list) or not isinstance(channels, list):
         raise data.fail(f"{where}: samplers and channels must be arrays")
+    if len(channels) > MAX_ANIMATION_CHANNELS:
+        raise LimitExceededError(f"{where} has {len(channels)} channels, over the limit of {MAX_ANIMATION_CHANNELS}",
+                                 data.label)
     out: list[_Channel] = []
     for c, ch in enumerate(channels):
         if not isinstance(ch, dict) or not isinstance(ch.get("target"), dict):
@@ -649,6 +667,9 @@ def _read_animation(data: GltfData, a: int, n_nodes: int, notes: list[str]) -> t
             np.float64
         )
         require_finite(values, f"{name} {path} keyframes", data.label)
+        if path == "translation" and values.size and float(np.abs(values).max()) > MAX_COORDINATE:
+            raise data.fail(f"{name}: a translation keyframe of node {node} is {float(np.abs(values).max()):.3g} "
+                            f"from the origin, over the limit of {MAX_COORDINATE:g} (not a motion in metres)")
         expected = len(times) * (3 if interp == "CUBICSPLINE" else 1)
         if values.shape[0] != expected:
             raise data.fail(
@@ -733,6 +754,9 @@ def _build_motion(
             data.label,
         )
     frames = int(math.floor(frames_f + 1e-3)) + 1
+    n_nodes = len(nodes.parents)
+    data.budget.charge(frames * (n_nodes * 10 * 8 + len(needed) * 16 * 8 * 2 + len(skeleton_nodes) * 7 * 8 * 4),
+                       f"animation {name!r} ({frames} frames of {n_nodes} nodes)")
     t = np.arange(frames, dtype=np.float64) / rate
     tt = np.repeat(nodes.t[None], frames, 0)
     qq = np.repeat(nodes.q[None], frames, 0)
@@ -790,22 +814,23 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
     if skins:
         joints = set().union(*(s.joints for s in skins))
         chosen = set(joints)
+        no_joint_above: set[int] = set()  # nodes with no joint among their ancestors (walks stop there)
         for j in joints:
             path_up: list[int] = []
             p = nodes.parents[j]
-            while p >= 0:
+            while p >= 0 and p not in no_joint_above:
                 if p in joints:
                     chosen.update(path_up)
                     break
                 path_up.append(p)
                 p = nodes.parents[p]
+            else:
+                no_joint_above.update(path_up)
         if len(skins) > 1:
             notes.append(f"{len(skins)} skins merged into one skeleton (union of their joints)")
     else:
         animated = {ch.node for _, chans in animations for ch in chans}
-        chosen = set(animated)
-        for n in animated:
-            chosen.update(nodes.ancestors(n))
+        chosen = nodes.with_ancestors(animated)
         for n in nodes.order:  # descendants: parent-before-child order makes one pass enough
             if nodes.parents[n] in chosen:
                 chosen.add(n)

@@ -52,6 +52,7 @@ def api_env(tmp_path: Path, database_url: str) -> Iterator[ApiEnv]:
         page_size_default=2,
         max_batch_jobs=6,
         frontend_dir=tmp_path / "no-frontend",
+        callback_allowed_hosts=["127.0.0.1"],
     )
     app = create_app(settings)
     fake = FakeCelery()

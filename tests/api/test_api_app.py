@@ -56,13 +56,19 @@ def test_upload_multipart_reports_what_was_found_and_stores_once(api_env: ApiEnv
     assert body["info"]["joints"] == ["Hips"] and body["builtin"] is False
     assert r.headers["location"] == f"/v1/characters/{body['id']}"
     assert len(api_env.celery.named(TASK_INSPECT)) == 1
-    # the same bytes again (another key, raw body): one blob, no second parse
+    # the same bytes again by the same key (raw body): one blob, no second parse
+    r1 = api_env.client.post("/v1/characters?filename=again.glb", content=GLB,
+                             headers={**h, "Content-Type": "application/octet-stream"})
+    assert r1.status_code == 201 and len(api_env.celery.named(TASK_INSPECT)) == 1
+    # by another key: still one blob, but parsed again for that key (no file name from the other key, and no
+    # faster answer telling it someone has the file)
     h2 = api_env.key("other")
     r2 = api_env.client.post("/v1/characters?filename=copy.glb&name=Copy", content=GLB,
                              headers={**h2, "Content-Type": "application/octet-stream"})
     assert r2.status_code == 201, r2.text
     assert r2.json()["sha256"] == body["sha256"] and r2.json()["name"] == "Copy"
-    assert len(api_env.celery.named(TASK_INSPECT)) == 1
+    assert r2.json()["filename"] == "copy.glb" and "hero" not in r2.text
+    assert len(api_env.celery.named(TASK_INSPECT)) == 2
     assert len(blob_files(api_env)) == 1
 
 

@@ -159,8 +159,24 @@ def test_celery_reliability_settings(tmp_path: Path) -> None:
     conf = make_celery(s).conf
     assert conf.task_acks_late and conf.task_reject_on_worker_lost and conf.worker_prefetch_multiplier == 1
     assert (conf.task_soft_time_limit, conf.task_time_limit) == (100, 120)
-    assert {q.name for q in conf.task_queues} == {"cpu", "gpu", IO_QUEUE}
+    assert {q.name for q in conf.task_queues} == {"cpu", "gpu", IO_QUEUE, "webhooks"}
+    assert conf.task_routes["retarget.deliver_webhook"]["queue"] == "webhooks"
     assert conf.task_routes[TASK_INSPECT]["queue"] == IO_QUEUE and TASK_RUN_JOB not in conf.task_routes
     assert conf.broker_transport_options["visibility_timeout"] > 120  # never re-delivered while it may still run
     embedded = make_celery(Settings(data_dir=tmp_path)).conf
     assert embedded.broker_url.startswith("retarget-sqla+sqlite:") and not embedded.worker_enable_remote_control
+
+
+def test_callback_urls_refuse_internal_addresses_in_every_spelling() -> None:
+    import pytest
+
+    from api.callbacks import CallbackRefused, check_url
+
+    for url in ("http://169.254.169.254/latest", "http://2130706433/", "http://0x7f.0.0.1/", "http://127.1/",
+                "http://[::1]/", "http://0.0.0.0/", "http://10.1.2.3/", "http://[::ffff:192.168.0.1]/",
+                "http://metadata/", "http://svc.internal/", "http://localhost:8080/", "http://user:pw@example.com/",
+                "ftp://example.com/"):
+        with pytest.raises(CallbackRefused):
+            check_url(url, [], 2000)
+    assert check_url("https://hooks.example.com/x", [], 2000)
+    assert check_url("http://metadata/x", ["metadata"], 2000)  # an operator's allow-list

@@ -68,12 +68,14 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         "RETARGET_API_REAPER_INTERVAL_SECONDS": "1",
         "RETARGET_API_PROGRESS_MIN_INTERVAL_SECONDS": "0.1",
         "RETARGET_API_WEBHOOK_BACKOFF_BASE_SECONDS": "0.5",
+        "RETARGET_API_CALLBACK_ALLOWED_HOSTS": '["127.0.0.1"]',
         "OMP_NUM_THREADS": "1",
     })
     svc = Service(f"http://127.0.0.1:{port}", data_dir, database_url, env["REDIS_URL"], env, log_dir)
     try:
         svc.start_worker("io", "io")
         svc.start_worker("cpu", "cpu")
+        svc.start_worker("webhooks", "webhooks")
         svc.start("api", ["-m", "uvicorn", "api.main:create_app", "--factory", "--host", "127.0.0.1", "--port",
                           str(port), "--log-level", "warning"])
         svc.wait_ready()

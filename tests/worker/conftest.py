@@ -41,7 +41,8 @@ def wsettings(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Settin
 
     upgrade(url)
     settings = Settings(data_dir=tmp_path / "data", database_url=url, heartbeat_interval_seconds=0.2,
-                        heartbeat_timeout_seconds=2.0, progress_min_interval_seconds=0.0)
+                        heartbeat_timeout_seconds=2.0, progress_min_interval_seconds=0.0,
+                        callback_allowed_hosts=["127.0.0.1"])
     Storage(settings.data_dir).ensure()
     yield settings
     dispose_all()
@@ -55,7 +56,8 @@ def sqlite_settings(tmp_path: Path) -> Iterator[Settings]:
     url = f"sqlite:///{tmp_path / 'w.sqlite'}"
     upgrade(url)
     settings = Settings(data_dir=tmp_path / "data", database_url=url, heartbeat_interval_seconds=0.2,
-                        heartbeat_timeout_seconds=2.0, progress_min_interval_seconds=0.0)
+                        heartbeat_timeout_seconds=2.0, progress_min_interval_seconds=0.0,
+                        callback_allowed_hosts=["127.0.0.1"])
     Storage(settings.data_dir).ensure()
     yield settings
     dispose_all()

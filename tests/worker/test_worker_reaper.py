@@ -64,7 +64,8 @@ def test_limits_end_a_job_instead_of_requeueing(wsettings: Settings) -> None:
 
 def test_queued_jobs_never_sent_or_sent_long_ago_are_sent_again(wsettings: Settings) -> None:
     old = utcnow() - timedelta(seconds=wsettings.requeue_queued_after_seconds + 5)
-    never = add_job(wsettings, sent_at=None, created_at=utcnow() - timedelta(seconds=60))
+    a_minute_ago = utcnow() - timedelta(seconds=60)
+    never = add_job(wsettings, sent_at=None, created_at=a_minute_ago, updated_at=a_minute_ago)
     fresh_never = add_job(wsettings, sent_at=None)
     long_ago = add_job(wsettings, sent_at=old)
     recent = add_job(wsettings, sent_at=utcnow())

@@ -97,7 +97,7 @@ def test_unreachable_receiver_is_retried(wsettings: Settings) -> None:
     assert outcome == "retry" and delay == wsettings.webhook_backoff_base_seconds
     with session_scope(wsettings.resolved_database_url) as s:
         d = s.get(WebhookDelivery, d_id)
-        assert d.status == "pending" and d.last_status_code is None and "Connect" in d.last_error
+        assert d.status == "pending" and d.last_status_code is None and d.last_error == "could not connect"
         assert d.next_attempt_at is not None
 
 
@@ -112,3 +112,21 @@ def test_global_secret_setting_overrides(wsettings: Settings, hook: Hook) -> Non
 def test_backoff_doubles_and_is_capped() -> None:
     s = Settings(webhook_backoff_base_seconds=2, webhook_backoff_max_seconds=20)
     assert [backoff_seconds(s, n) for n in range(1, 6)] == [2, 4, 8, 16, 20]
+
+
+def test_private_addresses_are_refused_at_delivery_without_connecting(wsettings: Settings, hook: Hook) -> None:
+    d_id, _ = delivery(wsettings, hook.url)
+    wsettings.callback_allowed_hosts = []  # the receiver is on 127.0.0.1: no longer allowed
+    outcome, _ = deliver(wsettings, d_id, 1)
+    assert outcome == "retry" and hook.received == []
+    with session_scope(wsettings.resolved_database_url) as s:
+        d = s.get(WebhookDelivery, d_id)
+        assert "not a public address" in d.last_error and d.last_status_code is None
+
+
+def test_redirects_are_not_followed(wsettings: Settings, hook: Hook) -> None:
+    d_id, _ = delivery(wsettings, hook.url)
+    hook.codes = [302]
+    assert deliver(wsettings, d_id, 1)[0] == "retry" and len(hook.received) == 1
+    with session_scope(wsettings.resolved_database_url) as s:
+        assert s.get(WebhookDelivery, d_id).last_error == "HTTP 302 (redirects are not followed)"

@@ -1,0 +1,282 @@
+"""Load benchmark of the API: many concurrent pollers and submitters, on SQLite and on PostgreSQL.
+
+Starts the API under uvicorn (``--api-processes``, default 2: one per core; Redis broker on a spare database number, flushed) on a temporary data
+directory, with a motion, a character and one finished job written straight into the database, and no worker
+(submitted jobs go to the ``gpu`` queue; nothing runs them, so the figures are the API's own cost). The load
+generator is a small asyncio HTTP/1.1 client (one keep-alive connection per client), light enough to share the
+machine with the API.
+
+For every database and every level it prints p50/p95/p99 latency, requests/s and errors:
+- ``poll``: N clients calling GET /v1/jobs/{id} as fast as they can;
+- ``submit``: N clients calling POST /v1/jobs as fast as they can;
+- ``mixed``: 200 pollers and 64 submitters at once (the target: 0 errors, p99 under 1 s).
+
+    python benchmarks/load_benchmark.py                       # writes benchmarks/results/load.json
+    python benchmarks/load_benchmark.py --databases sqlite --duration 5 --pollers 50,200 --submitters 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import platform
+import secrets
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from api.db import dispose_all, session_scope  # noqa: E402
+from api.migrate import upgrade  # noqa: E402
+from api.models import Asset, Job  # noqa: E402
+from api.security import create_key  # noqa: E402
+
+PG_ADMIN = os.environ.get("RETARGET_TEST_PG_ADMIN", "postgresql://postgres@127.0.0.1:5432/test")
+TIMEOUT_S = 30.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def claim_redis_db() -> tuple[Any, int]:
+    import redis
+
+    token = secrets.token_hex(8)
+    for db in range(15, 0, -1):
+        r = redis.Redis("127.0.0.1", 6379, db=db, socket_timeout=2)
+        if r.dbsize() == 0 and r.set("retarget-benchmark:lock", token, nx=True, ex=3600):
+            r.flushdb()
+            return r, db
+    raise SystemExit("no empty Redis database (1-15)")
+
+
+def make_database(kind: str, root: Path) -> tuple[str, Any]:
+    if kind == "sqlite":
+        return f"sqlite:///{root / 'service.sqlite'}", None
+    import psycopg
+
+    name = f"retarget_load_{secrets.token_hex(4)}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+        conn.execute(f'CREATE DATABASE "{name}"')
+
+    def drop() -> None:
+        dispose_all()
+        with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+    return PG_ADMIN.rsplit("/", 1)[0] + f"/{name}", drop
+
+
+def seed(url: str) -> tuple[str, str, str, str]:
+    """A key, a motion, a character and a finished job; returns (key, motion id, character id, job id)."""
+    with session_scope(url) as s:
+        key_row, key = create_key(s, "load")
+        motion = Asset(id="mot_load", kind="motion", owner_id=key_row.id, name="walk", filename="walk.bvh",
+                       format="bvh", sha256="a" * 64, size_bytes=1000,
+                       info={"frames": 120, "fps": 30.0, "duration_s": 4.0})
+        character = Asset(id="chr_load", kind="character", owner_id=key_row.id, name="body", filename="body.glb",
+                          format="glb", sha256="b" * 64, size_bytes=1000, info={"vertices": 10000})
+        s.add_all([motion, character])
+        s.flush()
+        job = Job(owner_id=key_row.id, motion_id=motion.id, target_character_id=character.id,
+                  motion_ref=f"{'a' * 64}.bvh", target_ref=f"{'b' * 64}.glb", status="succeeded", stage="done",
+                  progress=1.0, outputs={"result.glb": "jobs/x/result.glb"})
+        s.add(job)
+        s.flush()
+        return key, motion.id, character.id, job.id
+
+
+class Client:
+    """One keep-alive HTTP/1.1 connection; ``request`` returns the status code (or raises)."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def request(self, raw: bytes) -> int:
+        if self.writer is None:
+            self.reader, self.writer = await asyncio.open_connection("127.0.0.1", self.port)
+        assert self.reader is not None
+        self.writer.write(raw)
+        head = await self.reader.readuntil(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        status = int(lines[0].split()[1])
+        length = 0
+        close = False
+        for line in lines[1:]:
+            name, _, value = line.partition(":")
+            if name.lower() == "content-length":
+                length = int(value)
+            elif name.lower() == "connection" and value.strip().lower() == "close":
+                close = True
+        if length:
+            await self.reader.readexactly(length)
+        if close:
+            self.close()
+        return status
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+
+def get_request(path: str, key: str) -> bytes:
+    return f"GET {path} HTTP/1.1\r\nHost: bench\r\nX-API-Key: {key}\r\n\r\n".encode()
+
+
+def post_request(path: str, key: str, body: dict[str, Any]) -> bytes:
+    data = json.dumps(body).encode()
+    return (f"POST {path} HTTP/1.1\r\nHost: bench\r\nX-API-Key: {key}\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(data)}\r\n\r\n").encode() + data
+
+
+async def client_loop(port: int, raw: bytes, ok: int, end: float, out: list[float], errors: list[str]) -> None:
+    c = Client(port)
+    while time.perf_counter() < end:
+        t = time.perf_counter()
+        try:
+            status = await asyncio.wait_for(c.request(raw), TIMEOUT_S)
+            if status != ok:
+                errors.append(f"HTTP {status}")
+        except Exception as exc:
+            errors.append(type(exc).__name__)
+            c.close()
+            await asyncio.sleep(0.05)
+        out.append(time.perf_counter() - t)
+    c.close()
+
+
+def summary(samples: list[float], errors: list[str], duration: float, clients: int) -> dict[str, Any]:
+    ms = sorted(x * 1000 for x in samples)
+    q = statistics.quantiles(ms, n=100, method="inclusive") if len(ms) > 1 else (ms or [0.0]) * 99
+    kinds: dict[str, int] = {}
+    for e in errors:
+        kinds[e] = kinds.get(e, 0) + 1
+    return {"clients": clients, "requests": len(ms), "p50_ms": round(q[49], 1), "p95_ms": round(q[94], 1),
+            "p99_ms": round(q[98], 1), "max_ms": round(ms[-1], 1) if ms else None,
+            "requests_per_s": round(len(ms) / duration, 1), "errors": len(errors), "error_kinds": kinds}
+
+
+async def run_level(port: int, groups: dict[str, tuple[int, bytes, int]], duration: float) -> dict[str, Any]:
+    """Run every group (name -> (clients, request, expected status)) at once for ``duration`` seconds."""
+    end = time.perf_counter() + duration
+    samples: dict[str, list[float]] = {name: [] for name in groups}
+    errors: dict[str, list[str]] = {name: [] for name in groups}
+    tasks = [asyncio.create_task(client_loop(port, raw, ok, end, samples[name], errors[name]))
+             for name, (n, raw, ok) in groups.items() for _ in range(n)]
+    await asyncio.gather(*tasks)
+    return {name: summary(samples[name], errors[name], duration, groups[name][0]) for name in groups}
+
+
+def start_api(root: Path, db_url: str, redis_db: int, port: int, processes: int = 1) -> subprocess.Popen[bytes]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k not in ("DATABASE_URL",)}
+    env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
+                "RETARGET_API_DATABASE_URL": db_url, "REDIS_URL": f"redis://127.0.0.1:6379/{redis_db}",
+                "RETARGET_API_MAX_ACTIVE_JOBS_PER_KEY": "10000000", "OMP_NUM_THREADS": "1"})
+    log = open(root / "api.log", "ab")  # noqa: SIM115
+    return subprocess.Popen([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--port", str(port),
+                             "--log-level", "warning", "--no-access-log", "--backlog", "4096",
+                             "--workers", str(processes)],
+                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def bench_database(kind: str, args: argparse.Namespace) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="retarget-load-") as tmp:
+        root = Path(tmp) if not args.keep else Path(tempfile.mkdtemp(prefix="retarget-load-keep-"))
+        url, drop = make_database(kind, root)
+        redis, redis_db = claim_redis_db()
+        api = None
+        try:
+            upgrade(url)
+            key, motion, character, job = seed(url)
+            dispose_all()
+            port = free_port()
+            api = start_api(root, url, redis_db, port, args.api_processes)
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                try:
+                    if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    time.sleep(0.3)
+            poll = get_request(f"/v1/jobs/{job}", key)
+            submit = post_request("/v1/jobs", key, {"motion_id": motion, "target_character_id": character,
+                                                    "options": {"frame_end": 60}, "queue": "gpu"})
+            levels: list[dict[str, Any]] = []
+
+            def run(groups: dict[str, tuple[int, bytes, int]]) -> None:
+                asyncio.run(run_level(port, {k: v for k, v in groups.items() if v[0]}, 1.0))  # warm-up
+                result = asyncio.run(run_level(port, {k: v for k, v in groups.items() if v[0]}, args.duration))
+                levels.append(result)
+                for name, r in result.items():
+                    print(f"  {kind:<10} {name:<7} {r['clients']:>5} clients  p50 {r['p50_ms']:>7} ms  "
+                          f"p95 {r['p95_ms']:>7} ms  p99 {r['p99_ms']:>7} ms  {r['requests_per_s']:>7} req/s  "
+                          f"errors {r['errors']} {r['error_kinds'] or ''}", flush=True)
+
+            for n in args.pollers:
+                run({"poll": (n, poll, 200)})
+            for n in args.submitters:
+                run({"submit": (n, submit, 202)})
+            run({"poll": (args.mixed_pollers, poll, 200), "submit": (args.mixed_submitters, submit, 202)})
+            if args.keep:
+                print(f"  kept {root}")
+            return {"database": kind, "levels": levels}
+        finally:
+            if api is not None and api.poll() is None:
+                os.killpg(api.pid, signal.SIGTERM)
+                try:
+                    api.wait(20)
+                except subprocess.TimeoutExpired:
+                    os.killpg(api.pid, signal.SIGKILL)
+            redis.flushdb()
+            dispose_all()
+            if drop is not None:
+                drop()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--databases", default="sqlite,postgresql")
+    ap.add_argument("--pollers", default="50,100,200", help="levels of concurrent pollers")
+    ap.add_argument("--submitters", default="16,32,64", help="levels of concurrent submitters")
+    ap.add_argument("--mixed-pollers", type=int, default=200)
+    ap.add_argument("--mixed-submitters", type=int, default=64)
+    ap.add_argument("--duration", type=float, default=8.0, help="seconds per level")
+    ap.add_argument("--api-processes", type=int, default=2, help="uvicorn worker processes of the API")
+    ap.add_argument("--keep", action="store_true", help="keep the data directory and API log (printed)")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "load.json")
+    args = ap.parse_args()
+    args.pollers = [int(x) for x in args.pollers.split(",") if x]
+    args.submitters = [int(x) for x in args.submitters.split(",") if x]
+    results: dict[str, Any] = {
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "settings": {"duration_s": args.duration, "api_processes": args.api_processes, "broker": "redis"},
+        "runs": [],
+    }
+    print(f"Load benchmark ({os.cpu_count()} CPUs; API, Redis, database and load generator on this machine)")
+    for kind in args.databases.split(","):
+        results["runs"].append(bench_database(kind, args))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1))
+    print(f"written {args.out}")
+
+
+if __name__ == "__main__":
+    main()
