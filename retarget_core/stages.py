@@ -27,7 +27,7 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network", available=False),
     StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states", available=False),
     StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept"),
-    StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK", available=False),
+    StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK"),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 REFINEMENT_STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES if s.name != "contacts")

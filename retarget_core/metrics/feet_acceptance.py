@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from retarget_core.body_parts import body_parts
+from retarget_core.body_parts import BodyParts, body_parts
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.kinematics import skinning_matrices
@@ -52,7 +52,11 @@ class FootVertices:
 
 def foot_vertices(character: Character, mapping: JointMapping) -> FootVertices:
     """The vertices of each foot: those whose dominant canonical segment is that side's Foot or ToeBase."""
-    parts = body_parts(character, mapping)
+    return foot_vertices_of(body_parts(character, mapping))
+
+
+def foot_vertices_of(parts: BodyParts) -> FootVertices:
+    """:func:`foot_vertices` from a character's body parts."""
     out = []
     for side in SIDES:
         segs = [parts.index(n) for n in (f"{side}Foot", f"{side}ToeBase") if parts.find(n) is not None]
@@ -192,6 +196,7 @@ __all__ = [
     "feet_figures",
     "foot_joint_pairs",
     "foot_vertices",
+    "foot_vertices_of",
     "lowest_foot_heights",
     "lowest_vertex_heights",
     "planted_feet",
