@@ -15,7 +15,7 @@ from retarget_core.body_parts import body_parts, mapping_by_name
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContacts
 from retarget_core.energy.sdf import build_part_sdf
-from retarget_core.metrics.compute import measure_clip, summarize
+from retarget_core.metrics.compute import compute_metrics, measure_clip, summarize
 from retarget_core.metrics.report import (
     SCHEMA_VERSION,
     MetricsReport,
@@ -181,6 +181,22 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
     assert r.before.summary.contact_distance_mean.value is not None
     assert r.after is not None and r.after.summary.mpjpe.value == pytest.approx(0.0, abs=1e-6)
     assert set(r.timings_s) == {"contacts", "correspondence", "sdf", "metrics"}
+    # Hand contacts: every source contact (frame, hand, part) is measured on the target by the hand's distance to
+    # the touched part; the bulky hip is wider, so the copied hand rests on or in it: kept.
+    n_contacts = len({(f, h, c) for f, h, c in zip(job.source.self_contacts.frame.tolist(),
+                      job.source.self_contacts.hand.tolist(), job.source.self_contacts.part.tolist(), strict=True)})  # fmt: skip
+    assert r.before.summary.hand_contacts == n_contacts
+    assert r.before.summary.contact_preservation == 1.0
+    assert r.before.summary.contact_hand_distance_mean.value_at_180 < 2.5
+    assert len(r.before.series["contact_hand_distance"].values) == frames
+    # The arm back at rest (the hand away from the hip): no contact is kept.
+    from retarget_core.evaluation import part_sdf_for
+
+    rest = tgt.skeleton.rest_rotations.expand(frames, -1, -1).clone()
+    away = Motion(tgt.skeleton, 30.0, rest, before.translations.clone(), "away")
+    lost, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], away, contacts=job.constraints)
+    assert lost.summary.hand_contacts == n_contacts and lost.summary.contact_preservation == 0.0
+    assert lost.summary.contact_hand_distance_mean.value_at_180 > 3.0
     with pytest.raises(ValueError, match="same number of frames"):
         measure_job(src, src_map, view, tgt, tgt_map, before.slice(0, 3))
 
