@@ -9,7 +9,6 @@ see docs/metrics.md for every field.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +20,12 @@ from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContactParams, FootContacts, detect_foot_contacts
-from retarget_core.contacts.hand_distance import hand_part_distances, hand_part_geometry
+from retarget_core.contacts.hand_distance import (
+    HandDistanceParams,
+    HandPartDistances,
+    hand_part_distances,
+    hand_part_geometry,
+)
 from retarget_core.energy.sdf import (
     REFERENCE_HEIGHT_M,
     PartSDF,
@@ -110,8 +114,11 @@ def measure_clip(
     ground: float = 0.0,
     params: MetricParams | None = None,
     foot_params: FootContactParams | None = None,
+    source_hand_distances: HandPartDistances | None = None,
 ) -> ClipMeasures:
-    """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame."""
+    """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame.
+    ``source_hand_distances``: the source's hand-to-part distances (``SelfContacts.distances``), for the false
+    contacts (docs/metrics.md "Hand contacts")."""
     params = params or MetricParams()
     if motion.skeleton.num_joints != character.skeleton.num_joints:
         raise ValueError("the motion does not animate this character's skeleton")
@@ -124,7 +131,9 @@ def measure_clip(
     limb = torch.zeros(f_n, len(LIMBS))
     lowest = torch.zeros(f_n)
     c_dist, c_frame = [], []
-    hands = ContactHandMeter(character, parts, contacts) if contacts is not None and contacts.count else None
+    hands = None
+    if (contacts is not None and contacts.count) or source_hand_distances is not None:
+        hands = ContactHandMeter(character, parts, contacts, source_hand_distances)
     area = sdf.vertex_area
     with torch.no_grad():
         grot, gpos = motion.global_transforms()
@@ -160,12 +169,15 @@ def measure_clip(
 # correspondence's error (about 4 cm at the 90th percentile), larger than their 1 cm threshold.
 
 CONTACT_KEPT_M = 0.025  # at 1.80 m: ACCEPTANCE.md "contact preservation"
+FALSE_CONTACT_M = 0.01  # at 1.80 m: ACCEPTANCE.md "false contacts" (far on the source, closer than this here)
 
 
 @dataclass
 class ContactHandMeasures:
     """Per source contact ``(N,)``: frame, hand (index into ``hands``), touched part (index into ``parts``), and
-    the hand's distance to that part's surface on this body (m, 0 inside, ``max_distance`` where farther)."""
+    the hand's distance to that part's surface on this body (m, 0 inside, ``max_distance`` where farther).
+    far_pairs: (hand, part, frame) farther than 5 cm (at 1.80 m) apart on the source, when the source's
+    distances were given (else None); false_pairs: how many of them are closer than 1 cm here."""
 
     hands: tuple[str, ...]
     parts: tuple[str, ...]
@@ -174,6 +186,8 @@ class ContactHandMeasures:
     part: Tensor
     distance: Tensor
     max_distance: float
+    far_pairs: int | None = None
+    false_pairs: int = 0
 
 
 def contact_hand_targets(contacts: ContactConstraints, hands: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor]:
@@ -196,42 +210,61 @@ def contact_hand_targets(contacts: ContactConstraints, hands: tuple[str, ...]) -
 class ContactHandMeter:
     """Measures, chunk by chunk of posed frames, the hand-to-part distance of each source contact."""
 
-    def __init__(self, character: Character, parts: BodyParts, contacts: ContactConstraints) -> None:
+    def __init__(self, character: Character, parts: BodyParts, contacts: ContactConstraints | None,
+                 source: HandPartDistances | None = None) -> None:  # fmt: skip
         self.geometry = hand_part_geometry(parts, character.vertices, character.height)
         self.character, self.parts = character, parts
-        self.frame, self.hand, self.part = contact_hand_targets(contacts, self.geometry.hands)
+        if contacts is not None and contacts.count:
+            self.frame, self.hand, self.part = contact_hand_targets(contacts, self.geometry.hands)
+        else:
+            self.frame = self.hand = self.part = torch.zeros(0, dtype=torch.long)
         self.distance = torch.full((len(self.frame),), float("inf"))
-        self.max_distance = float("inf")
+        self.max_distance = HandDistanceParams().max_distance_m * character.height / REFERENCE_HEIGHT_M
+        self.source = source
+        self.far_pairs: int | None = None if source is None else 0
+        self.false_pairs = 0
+        self.false_m = FALSE_CONTACT_M * character.height / REFERENCE_HEIGHT_M
 
     def measure(self, verts: Tensor, start: int) -> None:
         """``verts (C, V, 3)``: the posed frames ``start .. start + C``."""
-        sel = (self.frame >= start) & (self.frame < start + verts.shape[0])
-        if not bool(sel.any()):
-            return
-        frames = self.frame[sel].unique()
-        d = hand_part_distances(self.character, self.parts, verts[frames - start], geometry=self.geometry)
-        row = torch.searchsorted(frames, self.frame[sel])
-        self.distance[sel] = d.distance[row, self.hand[sel], self.part[sel]].float()
-        self.max_distance = d.max_distance
+        stop = start + verts.shape[0]
+        sel = (self.frame >= start) & (self.frame < stop)
+        src = self.source
+        if src is not None and src.num_frames >= stop:
+            d = hand_part_distances(self.character, self.parts, verts, geometry=self.geometry)
+            far = torch.isinf(src.distance[start:stop]) & src.measured[None] & d.measured[None]
+            self.far_pairs = (self.far_pairs or 0) + int(far.sum())
+            self.false_pairs += int((far & (d.distance < self.false_m)).sum())
+            self.distance[sel] = d.distance[self.frame[sel] - start, self.hand[sel], self.part[sel]].float()
+        elif bool(sel.any()):
+            frames = self.frame[sel].unique()
+            d = hand_part_distances(self.character, self.parts, verts[frames - start], geometry=self.geometry)
+            row = torch.searchsorted(frames, self.frame[sel])
+            self.distance[sel] = d.distance[row, self.hand[sel], self.part[sel]].float()
 
     def result(self) -> ContactHandMeasures:
         g = self.geometry
-        dist = self.distance.clamp_max(self.max_distance) if math.isfinite(self.max_distance) else self.distance
-        return ContactHandMeasures(g.hands, g.parts, self.frame, self.hand, self.part, dist, self.max_distance)
+        dist = self.distance.clamp_max(self.max_distance)
+        return ContactHandMeasures(g.hands, g.parts, self.frame, self.hand, self.part, dist, self.max_distance,
+                                   self.far_pairs, self.false_pairs)  # fmt: skip
 
 
 def contact_hand_summary(m: ClipMeasures) -> dict[str, Any]:
     """The summary fields of the source contacts' hand distances (docs/metrics.md "Hand contacts")."""
     s = m.scale_to_180
     c = m.contact_hands
+    false = None
+    if c is not None and c.far_pairs:
+        false = _round(c.false_pairs / c.far_pairs)
     if c is None or len(c.frame) == 0:
         return {"hand_contacts": 0, "contact_preservation": None,
-                "contact_hand_distance_mean": measure(None, s, "cm")}  # fmt: skip
+                "contact_hand_distance_mean": measure(None, s, "cm"), "false_contacts": false}  # fmt: skip
     kept = c.distance < CONTACT_KEPT_M / s
     return {
         "hand_contacts": int(len(c.frame)),
         "contact_preservation": _round(float(kept.float().mean())),
         "contact_hand_distance_mean": measure(float(c.distance.mean()) * 100.0, s, "cm"),
+        "false_contacts": false,
     }
 
 
@@ -449,10 +482,13 @@ def compute_metrics(
     reference: ClipMeasures | None = None,
     source_feet: FootContacts | None = None,
     params: MetricParams | None = None,
+    source_hand_distances: HandPartDistances | None = None,
 ) -> tuple[MethodMetrics, ClipMeasures]:
     """:func:`measure_clip` then :func:`summarize`; returns the metrics and the measures (reuse them as the
-    ``original`` of a later result)."""
-    measures = measure_clip(character, mapping, sdf, motion, contacts, params=params)
+    ``original`` of a later result). ``source_hand_distances`` (``SelfContacts.distances`` of the source):
+    adds the false contacts."""
+    measures = measure_clip(character, mapping, sdf, motion, contacts, params=params,
+                            source_hand_distances=source_hand_distances)  # fmt: skip
     return summarize(measures, original, reference, source_feet, params), measures
 
 

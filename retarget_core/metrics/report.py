@@ -65,6 +65,9 @@ class MetricSummary(BaseModel):
         default_factory=lambda: Measure(value=None, value_at_180=None, unit="cm"),
         description="mean hand-to-part distance over the source contacts (0 inside, at most 5 cm at 1.80 m)",
     )
+    false_contacts: float | None = Field(
+        None, description="share of (hand, part, frame) over 5 cm apart on the source that are within 1 cm here"
+    )
 
 
 class Series(BaseModel):

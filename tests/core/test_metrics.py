@@ -197,6 +197,19 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
     lost, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], away, contacts=job.constraints)
     assert lost.summary.hand_contacts == n_contacts and lost.summary.contact_preservation == 0.0
     assert lost.summary.contact_hand_distance_mean.value_at_180 > 3.0
+    assert lost.summary.false_contacts is None  # the source's distances were not given
+    # False contacts: a source standing at rest (hands far from everything) whose result has the hand on the hip.
+    from retarget_core.contacts.hand_distance import hand_part_distances
+
+    rest_r, rest_p = src.skeleton.rest_global()
+    still = src.pose_vertices(rest_r, rest_p)[None].expand(frames, -1, -1)
+    far = hand_part_distances(src, body_parts(src, src_map), still)
+    false, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], before, source_hand_distances=far)
+    far_pairs = int((torch.isinf(far.distance) & far.measured[None]).sum())
+    assert false.summary.false_contacts is not None and far_pairs == frames * 10  # 2 hands x 5 other parts
+    assert false.summary.false_contacts >= 1 / 10  # the left hand on the hip, at least
+    clean, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], away, source_hand_distances=far)
+    assert clean.summary.false_contacts == 0.0
     with pytest.raises(ValueError, match="same number of frames"):
         measure_job(src, src_map, view, tgt, tgt_map, before.slice(0, 3))
 
