@@ -194,6 +194,9 @@ def contact_hand_targets(contacts: ContactConstraints, hands: tuple[str, ...]) -
     """The distinct source contacts ``(frame, hand, part)`` ``(N,)`` of ``contacts`` (hand indices into ``hands``,
     parts into CLUSTERS; without ``contacts.part``, the cluster of the pair's other segment)."""
     names = contacts.part_names
+    none = torch.zeros(0, dtype=torch.long)
+    if not contacts.count or int(contacts.hand.max()) >= len(names) or int(contacts.other.max()) >= len(names):
+        return none, none, none  # constraints without part names: nothing to say which hand touched what
     hand_of = torch.tensor([hands.index(n) if n in hands else -1 for n in names], dtype=torch.long)
     if contacts.part is not None:
         part = contacts.part
