@@ -442,8 +442,15 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     b, h, g, t, t_c, t_r = b[keep], h[keep], g[keep], t[keep], t_c[keep], t_r[keep]
     # Level D: (hand vertex, triangle): the hand vertices within reach of each triangle (KD-tree ball query).
     v, idx = nearest.within(t_c, b, h, t_r + upper[g] + slack)
-    b, g, t = b[idx], g[idx], t[idx]
+    b, g, t, t_c, t_r = b[idx], g[idx], t[idx], t_c[idx], t_r[idx]
     p = x[b, v]
+    # Per hand vertex, only the triangles that can beat its distance to the nearest of their centroids (its own
+    # closest triangles, ties included, always pass: their lower bound is at most its distance).
+    dense = g * geom.hand_width + geom.hand_local[v]
+    size = n_g * geom.hand_width
+    dc = (p - t_c).norm(dim=-1)
+    keep = dc - t_r <= _group_min(dc, dense, size)[dense] + params.tie_m
+    b, g, t, v, p, dense = b[keep], g[keep], t[keep], v[keep], p[keep], dense[keep]
     # Exact closest points.
     tri = ext[b[:, None], geom.faces[t]]
     cp = closest_points(p, tri[:, 0], tri[:, 1], tri[:, 2])
@@ -452,8 +459,6 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     side = ((p - cp) * normal).sum(-1)
     # Per (group, hand vertex): closest distance, its triangle, and the sign at its closest point.
-    dense = g * geom.hand_width + geom.hand_local[v]
-    size = n_g * geom.hand_width
     d_dense = _group_min(d, dense, size)
     tied = d <= d_dense[dense] + params.tie_m
     best = _argmin_by_group(d, dense, size)  # entry of each key's closest triangle
