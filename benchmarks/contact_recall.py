@@ -13,7 +13,7 @@ hand contacts" when it has at least ``--min-contact-frames`` reference frames. A
 hand on reference frames (how much of "touching" is sunk into the body), and the time per frame of the distance
 queries and of the whole detection (single torch thread, wall and CPU).
 
-    flock /tmp/heavy.lock python benchmarks/contact_recall.py [--clips 002_07 007_01] [--max-frames 600]
+    flock /tmp/heavy.lock python benchmarks/contact_recall.py [--clips 002_07 007_01] [--max-frames 300]
 """
 
 from __future__ import annotations
@@ -155,7 +155,7 @@ def write_markdown(result: dict[str, Any], path: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--clips", nargs="*", help="clip names (e.g. 002_07); default: every shared clip")
-    ap.add_argument("--max-frames", type=int, default=600, help="frames per clip at 30 fps (0: all)")
+    ap.add_argument("--max-frames", type=int, default=300, help="frames per clip at 30 fps (0: all)")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--min-contact-frames", type=int, default=15, help="reference frames for a clip to count")
     ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "contact_recall.json")

@@ -21,7 +21,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from retarget_core.body_parts import BodyParts, body_parts
+from retarget_core.body_parts import CLUSTERS, BodyParts, body_parts
 from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.self_contact import SelfContacts
@@ -128,7 +128,9 @@ def build_correspondence(
 @dataclass
 class ContactConstraints:
     """Vertex pairs that should touch on the target: at ``frame (M,)`` vertices ``i (M,)`` and ``j (M,)``;
-    ``hand``/``other`` ``(M,)`` name the source contact's parts (indices into ``part_names``)."""
+    ``hand``/``other`` ``(M,)`` name the source contact's parts (indices into ``part_names``); ``part (M,)``
+    the touched body part (index into ``part_clusters``, the body_parts clusters) and ``source_distance (M,)``
+    the hand's distance to it on the source (m, 0 inside), or None when not known."""
 
     num_frames: int
     frame: Tensor
@@ -137,6 +139,9 @@ class ContactConstraints:
     hand: Tensor
     other: Tensor
     part_names: list[str]
+    part: Tensor | None = None
+    source_distance: Tensor | None = None
+    part_clusters: tuple[str, ...] = CLUSTERS
 
     @property
     def count(self) -> int:
@@ -145,8 +150,11 @@ class ContactConstraints:
     def select_frames(self, start: int, stop: int) -> ContactConstraints:
         """The constraints of frames ``start:stop``, renumbered from 0."""
         keep = (self.frame >= start) & (self.frame < stop)
-        return ContactConstraints(stop - start, self.frame[keep] - start, self.i[keep], self.j[keep],
-                                  self.hand[keep], self.other[keep], self.part_names)  # fmt: skip
+        return ContactConstraints(
+            stop - start, self.frame[keep] - start, self.i[keep], self.j[keep], self.hand[keep], self.other[keep],
+            self.part_names, None if self.part is None else self.part[keep],
+            None if self.source_distance is None else self.source_distance[keep], self.part_clusters,
+        )  # fmt: skip
 
 
 def transfer_contacts(contacts: SelfContacts, correspondence: VertexCorrespondence) -> ContactConstraints:
@@ -162,6 +170,9 @@ def transfer_contacts(contacts: SelfContacts, correspondence: VertexCorresponden
         contacts.hand.repeat_interleave(p),
         contacts.other.repeat_interleave(p),
         contacts.part_names,
+        contacts.part.repeat_interleave(p) if len(contacts.part) == contacts.count else None,
+        contacts.source_distance.repeat_interleave(p) if len(contacts.source_distance) == contacts.count else None,
+        tuple(contacts.part_clusters),
     )
 
 

@@ -100,8 +100,10 @@ class HandPartGeometry:
     tri_chunk_part: Tensor
     tri_chunk_vertices: Tensor
     measured: Tensor
-    tri_chunk_spheres: tuple[Tensor, Tensor, Tensor]
-    hand_chunk_spheres: tuple[Tensor, Tensor, Tensor]
+    tri_chunk_members: tuple[Tensor, Tensor, Tensor]
+    hand_chunk_dense: Tensor
+    hand_local: Tensor
+    hand_width: int
 
 
 @dataclass
@@ -214,6 +216,9 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
     tri_chunk_vertices = _padded(
         [np.unique(faces_t.numpy()[m[m >= 0]]) for m in tri_chunks.numpy()]
     )
+    hand_local = torch.full((n_v,), -1, dtype=torch.long)
+    for v in hand_vertices:
+        hand_local[v] = torch.arange(len(v))
     measured = torch.zeros(len(hands), len(CLUSTERS), dtype=torch.bool)
     present = torch.zeros(len(CLUSTERS), dtype=torch.bool)
     present[face_part.unique()] = True
@@ -224,13 +229,13 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
     return HandPartGeometry(
         n_v, hands, tuple(CLUSTERS), faces_t, face_part, ring_vertex, ring_cap, ring_count, hand_vertices,
         hand_chunks, chunk_hand, chunks_of_hand, tri_chunks, tri_chunk_part, tri_chunk_vertices, measured,
-        _memberships(tri_chunk_vertices), _memberships(hand_chunks),
+        _memberships(tri_chunk_vertices), _dense(hand_chunks), hand_local, max((len(v) for v in hand_vertices), default=1),
     )  # fmt: skip
 
 
-def _memberships(members: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    group, member = _flat_members(members)
-    return group, member, torch.bincount(group, minlength=len(members))
+def _dense(members: Tensor) -> Tensor:
+    """A -1 padded table ``(C, K)`` padded with each row's first member instead (for bounding boxes)."""
+    return torch.where(members >= 0, members, members[:, :1])
 
 
 def closest_points(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
@@ -274,15 +279,10 @@ def _edge_points(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
     return cands[k, torch.arange(len(p))]
 
 
-def _flat_members(members: Tensor) -> tuple[Tensor, Tensor]:
-    """The valid entries of a -1 padded table ``(C, K)`` as (group ``(M,)``, member ``(M,)``)."""
-    ok = members >= 0
-    return torch.arange(len(members))[:, None].expand_as(members)[ok], members[ok]
-
-
-def _sphere(x: Tensor, group: Tensor, member: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+def _flat_sphere(x: Tensor, group: Tensor, member: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
     """Centre ``(B, C, 3)`` (mean) and radius ``(B, C)`` of the posed points ``x (B, N, 3)`` of each group
-    (flat memberships ``group``, ``member`` ``(M,)``; ``count (C,)`` members per group)."""
+    (flat memberships ``group``, ``member`` ``(M,)``; ``count (C,)`` members per group): cheaper than
+    :func:`_sphere` for groups of very different sizes."""
     pts = x[:, member]  # (B, M, 3)
     centre = torch.zeros(x.shape[0], len(count), 3, dtype=x.dtype).index_add_(1, group, pts)
     centre = centre / count.clamp_min(1).to(x.dtype)[None, :, None]
@@ -291,6 +291,21 @@ def _sphere(x: Tensor, group: Tensor, member: Tensor, count: Tensor) -> tuple[Te
         1, group[None].expand(x.shape[0], -1), spread, "amax"
     )
     return centre, r
+
+
+def _memberships(members: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The valid entries of a -1 padded table ``(C, K)``: group ``(M,)``, member ``(M,)``, count ``(C,)``."""
+    ok = members >= 0
+    group = torch.arange(len(members))[:, None].expand_as(members)[ok]
+    return group, members[ok], torch.bincount(group, minlength=len(members))
+
+
+def _sphere(x: Tensor, members: Tensor) -> tuple[Tensor, Tensor]:
+    """Centre ``(B, C, 3)`` (of the bounding box) and radius ``(B, C)`` of the posed points ``x (B, N, 3)`` of
+    each group of ``members (C, K)`` (padded with repeats, see :func:`_dense`)."""
+    pts = x[:, members]  # (B, C, K, 3)
+    centre = 0.5 * (pts.amax(2) + pts.amin(2))
+    return centre, (pts - centre[:, :, None]).norm(dim=-1).amax(-1)
 
 
 def _group_min(values: Tensor, group: Tensor, size: int, init: Tensor | None = None) -> Tensor:
@@ -326,17 +341,18 @@ class _HandTree:
     """Nearest hand vertex of a block of frames: one KD-tree (scipy cKDTree) over both hands of every frame, each
     (frame, hand) shifted to a cell of its own, far from the others."""
 
-    def __init__(self, x: Tensor, geom: HandPartGeometry) -> None:
+    def __init__(self, x: Tensor, geom: HandPartGeometry, cells: Tensor) -> None:
         span = float((x.amax((0, 1)) - x.amin((0, 1))).max()) + 1.0
         self.step = 4.0 * span  # a query in its own cell is nearer to it than to any other cell
         self.hands = len(geom.hands)
-        pts, cell = [], []
-        for b in range(x.shape[0]):
-            for h, v in enumerate(geom.hand_vertices):
-                pts.append(x[b, v].numpy())
-                cell.append(np.full(len(v), b * self.hands + h))
+        pts, cell, vertex = [], [], []
+        for c in cells.tolist():  # only the (frame, hand) cells that are queried
+            v = geom.hand_vertices[c % self.hands]
+            pts.append(x[c // self.hands, v].numpy())
+            cell.append(np.full(len(v), c))
+            vertex.append(v.numpy())
         cells = np.concatenate(cell)
-        self.vertex = np.concatenate([v.numpy() for _ in range(x.shape[0]) for v in geom.hand_vertices])
+        self.vertex = np.concatenate(vertex)
         self.tree = cKDTree(np.concatenate(pts) + self._offset(cells))
 
     def _offset(self, cells: np.ndarray) -> np.ndarray:
@@ -386,7 +402,7 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     centres = torch.zeros(bsz, n_caps, 3, dtype=x.dtype).index_add_(1, geom.ring_cap, x[:, geom.ring_vertex])
     ext = torch.cat([x, centres / geom.ring_count.clamp_min(1).to(x.dtype)[None, :, None]], dim=1)
     # Level A: triangle chunks whose sphere reaches each hand's box grown by the cutoff.
-    tc_c, tc_r = _sphere(ext, *geom.tri_chunk_spheres)  # (B, Q, 3), (B, Q)
+    tc_c, tc_r = _flat_sphere(ext, *geom.tri_chunk_members)  # (B, Q, 3), (B, Q)
     boxes = [(x[:, v].amin(1), x[:, v].amax(1)) if len(v) else (x[:, 0], x[:, 0]) for v in geom.hand_vertices]
     lo, hi = torch.stack([bx[0] for bx in boxes], 1), torch.stack([bx[1] for bx in boxes], 1)  # (B, 2, 3)
     clamped = torch.maximum(torch.minimum(tc_c[:, None], hi[:, :, None]), lo[:, :, None])
@@ -395,7 +411,7 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     if len(b) == 0:
         return empty
     g = (b * n_h + h) * n_p + geom.tri_chunk_part[q]
-    nearest = _HandTree(x, geom)
+    nearest = _HandTree(x, geom, torch.unique(b * n_h + h))
     # Level B: triangle chunks by the distance from their centre to the nearest hand vertex (KD-tree), against a
     # tight upper bound: the chunk vertices of each group's most promising chunk (vertex to vertex).
     dn = nearest.distance(tc_c[b, q], b, h)
@@ -426,8 +442,15 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     b, h, g, t, t_c, t_r = b[keep], h[keep], g[keep], t[keep], t_c[keep], t_r[keep]
     # Level D: (hand vertex, triangle): the hand vertices within reach of each triangle (KD-tree ball query).
     v, idx = nearest.within(t_c, b, h, t_r + upper[g] + slack)
-    b, g, t = b[idx], g[idx], t[idx]
+    b, g, t, t_c, t_r = b[idx], g[idx], t[idx], t_c[idx], t_r[idx]
     p = x[b, v]
+    # Per hand vertex, only the triangles that can beat its distance to the nearest of their centroids (its own
+    # closest triangles, ties included, always pass: their lower bound is at most its distance).
+    dense = g * geom.hand_width + geom.hand_local[v]
+    size = n_g * geom.hand_width
+    dc = (p - t_c).norm(dim=-1)
+    keep = dc - t_r <= _group_min(dc, dense, size)[dense] + params.tie_m
+    b, g, t, v, p, dense = b[keep], g[keep], t[keep], v[keep], p[keep], dense[keep]
     # Exact closest points.
     tri = ext[b[:, None], geom.faces[t]]
     cp = closest_points(p, tri[:, 0], tri[:, 1], tri[:, 2])
@@ -436,12 +459,13 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     side = ((p - cp) * normal).sum(-1)
     # Per (group, hand vertex): closest distance, its triangle, and the sign at its closest point.
-    keys, inverse = torch.unique(g * n_v + v, return_inverse=True)
-    d_key = _group_min(d, inverse, len(keys))
-    tied = d <= d_key[inverse] + params.tie_m
-    best = _argmin_by_group(d, inverse, len(keys))  # entry of each key's closest triangle
-    side_key = torch.zeros(len(keys), dtype=x.dtype).index_add_(0, inverse, torch.where(tied, side, 0.0))
-    g_key = g[best]
+    d_dense = _group_min(d, dense, size)
+    tied = d <= d_dense[dense] + params.tie_m
+    best = _argmin_by_group(d, dense, size)  # entry of each key's closest triangle
+    side_dense = torch.zeros(size, dtype=x.dtype).index_add_(0, dense, torch.where(tied, side, 0.0))
+    keys = torch.nonzero(torch.isfinite(d_dense)).flatten()
+    d_key, best, side_key = d_dense[keys], best[keys], side_dense[keys]
+    g_key = keys // geom.hand_width
     upper_key = upper[g_key]
     # A vertex's triangle set is complete (so its distance and side are right) when its distance is within the
     # bound every culling level used.

@@ -73,7 +73,8 @@ class SelfContacts:
     intersecting: ``(N,)`` a hand vertex lies inside the part; cosine: ``(N,)`` average velocity cosine
     similarity of the pairs (paper 1; information only); part: ``(N,)`` the touched part (index into
     ``part_clusters``, the body_parts clusters); source_distance: ``(N,)`` the hand's distance to that part's
-    surface (m, 0 when inside).
+    surface (m, 0 when inside); distances: the hand-to-part distances of every frame the contacts were found
+    from (for the false contacts of the metrics).
     """
 
     num_frames: int
@@ -89,6 +90,7 @@ class SelfContacts:
     source_distance: Tensor = field(default_factory=lambda: torch.zeros(0))
     params: SelfContactParams = field(default_factory=SelfContactParams)
     part_clusters: tuple[str, ...] = CLUSTERS
+    distances: HandPartDistances | None = None
 
     @property
     def count(self) -> int:
@@ -208,6 +210,7 @@ def contacts_from_distances(
         source_distance=distances.distance[frame, hi, part].float(),
         params=params,
         part_clusters=tuple(distances.parts),
+        distances=distances,
     )
 
 

@@ -61,6 +61,18 @@ class MetricSummary(BaseModel):
     m_o: Measure
     acceleration: Measure
     jerk: Measure
+    # Hand contacts (docs/metrics.md "Hand contacts"): each source contact's hand-to-part distance on this body.
+    hand_contacts: int = Field(0, description="source contacts (frame, hand, touched part) measured")
+    contact_preservation: float | None = Field(
+        None, description="share of source contacts whose hand is within 2.5 cm (at 1.80 m) of the touched part"
+    )
+    contact_hand_distance_mean: Measure = Field(
+        default_factory=lambda: Measure(value=None, value_at_180=None, unit="cm"),
+        description="mean hand-to-part distance over the source contacts (0 inside, at most 5 cm at 1.80 m)",
+    )
+    false_contacts: float | None = Field(
+        None, description="share of (hand, part, frame) over 5 cm apart on the source that are within 1 cm here"
+    )
 
 
 class Series(BaseModel):

@@ -15,7 +15,7 @@ from retarget_core.body_parts import body_parts, mapping_by_name
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContacts
 from retarget_core.energy.sdf import build_part_sdf
-from retarget_core.metrics.compute import measure_clip, summarize
+from retarget_core.metrics.compute import compute_metrics, measure_clip, summarize
 from retarget_core.metrics.report import (
     SCHEMA_VERSION,
     MetricsReport,
@@ -182,6 +182,35 @@ def test_measure_job_carries_source_contacts_to_the_target() -> None:
     assert r.after is not None and r.after.summary.mpjpe.value == pytest.approx(0.0, abs=1e-6)
     assert set(r.timings_s) == {"contacts", "correspondence", "sdf", "metrics", "source"}
     assert r.source is not None and r.source.body == src.name and r.source.frames == frames
+    # Hand contacts: every source contact (frame, hand, part) is measured on the target by the hand's distance to
+    # the touched part; the bulky hip is wider, so the copied hand rests on or in it: kept.
+    n_contacts = len({(f, h, c) for f, h, c in zip(job.source.self_contacts.frame.tolist(),
+                      job.source.self_contacts.hand.tolist(), job.source.self_contacts.part.tolist(), strict=True)})  # fmt: skip
+    assert r.before.summary.hand_contacts == n_contacts
+    assert r.before.summary.contact_preservation == 1.0
+    assert r.before.summary.contact_hand_distance_mean.value_at_180 < 2.5
+    assert len(r.before.series["contact_hand_distance"].values) == frames
+    # The arm back at rest (the hand away from the hip): no contact is kept.
+    from retarget_core.body_cache import part_sdf_for
+
+    rest = tgt.skeleton.rest_rotations.expand(frames, -1, -1).clone()
+    away = Motion(tgt.skeleton, 30.0, rest, before.translations.clone(), "away")
+    lost, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], away, contacts=job.constraints)
+    assert lost.summary.hand_contacts == n_contacts and lost.summary.contact_preservation == 0.0
+    assert lost.summary.contact_hand_distance_mean.value_at_180 > 3.0
+    assert lost.summary.false_contacts is None  # the source's distances were not given
+    # False contacts: a source standing at rest (hands far from everything) whose result has the hand on the hip.
+    from retarget_core.contacts.hand_distance import hand_part_distances
+
+    rest_r, rest_p = src.skeleton.rest_global()
+    still = src.pose_vertices(rest_r, rest_p)[None].expand(frames, -1, -1)
+    far = hand_part_distances(src, body_parts(src, src_map), still)
+    false, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], before, source_hand_distances=far)
+    far_pairs = int((torch.isinf(far.distance) & far.measured[None]).sum())
+    assert false.summary.false_contacts is not None and far_pairs == frames * 10  # 2 hands x 5 other parts
+    assert false.summary.false_contacts >= 1 / 10  # the left hand on the hip, at least
+    clean, _ = compute_metrics(tgt, tgt_map, part_sdf_for(tgt, tgt_map)[1], away, source_hand_distances=far)
+    assert clean.summary.false_contacts == 0.0
     with pytest.raises(ValueError, match="same number of frames"):
         measure_job(src, src_map, view, tgt, tgt_map, before.slice(0, 3))
 
