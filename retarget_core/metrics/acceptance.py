@@ -111,6 +111,7 @@ class ClipAcceptance:
     lowest_foot: np.ndarray
     duration: float
     seconds: float  # measuring time (the per-body preparation excluded)
+    cpu_seconds: float  # the same in CPU time of this process (all threads): robust to a busy machine
 
     @property
     def num_frames(self) -> int:
@@ -144,6 +145,7 @@ class AcceptanceFigures(BaseModel):
     end_effector_error_cm: float
     jerk_ratio: float | None
     seconds_per_frame: float
+    cpu_seconds_per_frame: float
 
 
 class AcceptanceRatios(BaseModel):
@@ -405,7 +407,7 @@ def measure_acceptance(
     if abs(motion.fps - JUDGE_FPS) > 1e-6:
         motion = resample(motion, JUDGE_FPS)
     body = acceptance_body(character, mapping)  # once per body (cached): not part of the time per frame
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     plan = _plan(body)
     k = body.scale_to_180
     f_n, v_n = motion.num_frames, character.num_vertices
@@ -457,6 +459,7 @@ def measure_acceptance(
         lowest_foot=lowest_foot * k,
         duration=duration,
         seconds=time.perf_counter() - started,
+        cpu_seconds=time.process_time() - cpu_started,
     )
 
 
@@ -541,6 +544,7 @@ def figures_from_measures(
         end_effector_error_cm=cm * float(ee.mean()) if ee.size else 0.0,
         jerk_ratio=(jr / js) if (jr is not None and js) else None,
         seconds_per_frame=result.seconds / max(result.num_frames, 1),
+        cpu_seconds_per_frame=result.cpu_seconds / max(result.num_frames, 1),
     )
 
 

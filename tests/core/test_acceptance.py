@@ -234,6 +234,7 @@ def test_targets_table() -> None:
         frames=10, source_frames=10, duration_s=1.0, source_duration_s=1.0, pen_mean_depth_cm=1.0,
         head_percent=0.0, head_mean_depth_cm=None, head_frames_over_1cm_percent=0.0, source_contacts=10,
         far_pairs=10, source_planted_frames=10, ground_penetration_cm=0.0, seconds_per_frame=0.01,
+        cpu_seconds_per_frame=0.01,
     )  # fmt: skip
     copy = AcceptanceFigures(
         pen_percent=2.0, frames_over_1cm_percent=50.0, contact_preservation=0.8, false_contacts=0.0,
