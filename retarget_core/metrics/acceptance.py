@@ -12,8 +12,8 @@ quantities are per 1/30 s. Parts, closed volumes, hands, feet and the seam band 
 - **Self-penetration.** A vertex of an arm is tested against torso, head, the other arm and both legs; of a leg
   against the other leg and both arms; head vertices against the torso (reported apart). Inside when the
   generalised winding number of the posed closed part is above 0.5 (libigl's fast winding number, Barill et
-  al. 2018: exact near field, a Taylor expansion of far clusters with beta = 2; its error is far below 0.5
-  except within a hair of the surface). Depth = distance to the closed part's surface (exact, libigl's AABB
+  al. 2018: exact near field, a Taylor expansion of far clusters with beta = 2, measured within 3e-4 of the
+  exact value here; exact for calls of at most ``EXACT_WN_MAX_QUERIES`` points). Depth = distance to the closed part's surface (exact, libigl's AABB
   tree). Not counted: vertices in the seam band; vertices whose closest point on the part is on a cap fan
   ("entered through a cap"). pen %v = mean over frames of the share of ALL vertices that penetrate (limbs
   only; the head apart as head %v); mean depth over penetrating (frame, vertex); frames > 1 cm = share of
@@ -61,7 +61,7 @@ from retarget_core.motion import Motion
 from retarget_core.resample import resample
 
 JUDGE_FPS = 30.0
-EXACT_WN_MAX_QUERIES = 64  # fewer queries than this: exact winding numbers beat building libigl's trees
+EXACT_WN_MAX_QUERIES = 4  # up to this many points: exact winding numbers in numpy beat building libigl's tree
 FOOT_SIDES: tuple[str, ...] = ("left", "right")
 END_EFFECTORS: tuple[str, ...] = ("LeftHand", "RightHand", "LeftFoot", "RightFoot", "Head")
 
@@ -268,10 +268,25 @@ def _through_cap(part: ClosedPart, local: np.ndarray, face: np.ndarray, closest:
     return out
 
 
+def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Exact generalised winding numbers ``(Q,)`` of ``points (Q, 3)`` for the triangles ``faces (T, 3)`` of
+    ``vertices`` (sum of signed solid angles over 4 pi, Van Oosterom and Strackee), a ``(Q, T)`` computation."""
+    a = vertices[faces[:, 0]][None] - points[:, None]
+    b = vertices[faces[:, 1]][None] - points[:, None]
+    c = vertices[faces[:, 2]][None] - points[:, None]
+    la, lb, lc = np.linalg.norm(a, axis=-1), np.linalg.norm(b, axis=-1), np.linalg.norm(c, axis=-1)
+    det = np.einsum("qfi,qfi->qf", a, np.cross(b, c))
+    dot = (
+        la * lb * lc + np.einsum("qfi,qfi->qf", a, b) * lc + np.einsum("qfi,qfi->qf", b, c) * la
+        + np.einsum("qfi,qfi->qf", c, a) * lb
+    )  # fmt: skip
+    return np.arctan2(det, dot).sum(axis=1) / (2.0 * np.pi)
+
+
 def _inside(part: ClosedPart, local: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``(Q,)`` generalised winding number of the closed part above 0.5 (in absolute value). Few queries:
-    exact (a sum over all triangles, no precomputation); many: libigl's fast winding number (its tree is built
-    per call, which costs about as much as ``EXACT_WN_MAX_QUERIES`` exact queries)."""
+    """``(Q,)`` generalised winding number of the closed part above 0.5 (in absolute value): libigl's fast
+    winding number (its tree is built per call, a few ms), or exactly (:func:`winding_numbers`) when there
+    are at most ``EXACT_WN_MAX_QUERIES`` points."""
     import igl
 
     if len(q) == 0:
@@ -279,7 +294,7 @@ def _inside(part: ClosedPart, local: np.ndarray, q: np.ndarray) -> np.ndarray:
     q = np.ascontiguousarray(q)
     if len(q) > EXACT_WN_MAX_QUERIES:
         return np.abs(igl.fast_winding_number(local, part.faces, q)) > 0.5
-    return np.abs(igl.winding_number(local, part.faces, q)) > 0.5
+    return np.abs(winding_numbers(local, part.faces, q)) > 0.5
 
 
 def _frame(
