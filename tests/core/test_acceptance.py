@@ -277,7 +277,7 @@ def cmu_motion_on_body(shared_data: Path, shared_bodies):
 
     character, mapping = shared_bodies[1]
     src = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh")
-    motion = resample(src.motion, 30.0).slice(0, 24)
+    motion = resample(src.motion, 30.0).slice(0, 16)
     return character, mapping, copy_retarget(motion, src.mapping, character.skeleton, mapping)
 
 
