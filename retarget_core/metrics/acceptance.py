@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -580,6 +581,30 @@ def acceptance_figures(
     return figures_from_measures(res, src, params)
 
 
+def load_judged_file(path: str | Path, clip: str | int = 0) -> tuple[Character, JointMapping, Motion]:
+    """A skinned, animated glTF/GLB as the judge reads it: the file's own coordinates (metres, Y up, its floor at
+    y = 0; unlike :func:`retarget_core.loading.load_motion`, which re-grounds a clip), joints mapped by name.
+    Returns the character, its mapping and animation ``clip`` (index or name) on the character's skeleton."""
+    from retarget_core.io.gltf_read import read_gltf
+    from retarget_core.mapping import map_joints
+
+    contents = read_gltf(path)
+    if contents.character is None or not contents.motions:
+        raise ValueError(f"{path}: the judge needs a skinned mesh and an animation")
+    motions = contents.motions
+    motion = next((m for m in motions if m.name == clip), None) if isinstance(clip, str) else motions[clip]
+    if motion is None:
+        raise ValueError(f"{path}: no animation named {clip!r}")
+    return contents.character, map_joints(contents.character.skeleton), motion
+
+
+def acceptance_figures_from_files(
+    result_path: str | Path, source_path: str | Path, params: AcceptanceParams | None = None
+) -> AcceptanceFigures:
+    """:func:`acceptance_figures` of a result GLB against a source GLB (the clip on its source body)."""
+    return acceptance_figures(*load_judged_file(result_path), *load_judged_file(source_path), params=params)
+
+
 # --------------------------------------------------------------------------------------------- targets
 
 
@@ -672,9 +697,11 @@ __all__ = [
     "TargetCheck",
     "Targets",
     "acceptance_figures",
+    "acceptance_figures_from_files",
     "acceptance_ratios",
     "PoseMeasures",
     "figures_from_measures",
+    "load_judged_file",
     "measure_acceptance",
     "measure_pose",
     "meets_targets",

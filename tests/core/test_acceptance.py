@@ -375,3 +375,24 @@ def test_culling_gives_the_brute_force_answer(cmu_motion_on_body) -> None:
                     assert got.hand_distance[h, c] == pytest.approx(best, abs=1e-9)
                 else:
                     assert got.hand_distance[h, c] <= best + 1e-9
+
+
+def test_a_written_glb_is_judged_like_the_motion_it_holds(cmu_motion_on_body, tmp_path: Path) -> None:
+    """The judge reads GLBs: writing the result and reading it back as the judge does gives the same figures."""
+    from retarget_core.io.gltf_write import write_glb
+    from retarget_core.metrics.acceptance import acceptance_figures_from_files, load_judged_file
+
+    character, mapping, motion = cmu_motion_on_body
+    motion = motion.slice(0, 8)
+    write_glb(character, motion, tmp_path / "result.glb")
+    write_glb(character, still(character, 8), tmp_path / "source.glb")
+    c2, m2, mo2 = load_judged_file(tmp_path / "result.glb")
+    direct = measure_acceptance(character, mapping, motion)
+    read = measure_acceptance(c2, m2, mo2)
+    np.testing.assert_allclose(read.joints, direct.joints, atol=1e-4)
+    np.testing.assert_allclose(read.lowest, direct.lowest, atol=1e-4)
+    np.testing.assert_array_equal(read.pen_count, direct.pen_count)
+    fig = acceptance_figures_from_files(tmp_path / "result.glb", tmp_path / "source.glb")
+    want = acceptance_figures(character, mapping, motion, character, mapping, still(character, 8))
+    assert fig.end_effector_error_cm == pytest.approx(want.end_effector_error_cm, abs=1e-3)
+    assert fig.float_cm == pytest.approx(want.float_cm, abs=1e-3)
