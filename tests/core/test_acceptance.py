@@ -234,6 +234,7 @@ def test_targets_table() -> None:
         frames=10, source_frames=10, duration_s=1.0, source_duration_s=1.0, pen_mean_depth_cm=1.0,
         head_percent=0.0, head_mean_depth_cm=None, head_frames_over_1cm_percent=0.0, source_contacts=10,
         far_pairs=10, source_planted_frames=10, ground_penetration_cm=0.0, seconds_per_frame=0.01,
+        cpu_seconds_per_frame=0.01,
     )  # fmt: skip
     copy = AcceptanceFigures(
         pen_percent=2.0, frames_over_1cm_percent=50.0, contact_preservation=0.8, false_contacts=0.0,
@@ -276,7 +277,7 @@ def cmu_motion_on_body(shared_data: Path, shared_bodies):
 
     character, mapping = shared_bodies[1]
     src = load_motion(shared_data / "motions" / "cmu" / "002_08.bvh")
-    motion = resample(src.motion, 30.0).slice(0, 24)
+    motion = resample(src.motion, 30.0).slice(0, 16)
     return character, mapping, copy_retarget(motion, src.mapping, character.skeleton, mapping)
 
 
@@ -374,3 +375,24 @@ def test_culling_gives_the_brute_force_answer(cmu_motion_on_body) -> None:
                     assert got.hand_distance[h, c] == pytest.approx(best, abs=1e-9)
                 else:
                     assert got.hand_distance[h, c] <= best + 1e-9
+
+
+def test_a_written_glb_is_judged_like_the_motion_it_holds(cmu_motion_on_body, tmp_path: Path) -> None:
+    """The judge reads GLBs: writing the result and reading it back as the judge does gives the same figures."""
+    from retarget_core.io.gltf_write import write_glb
+    from retarget_core.metrics.acceptance import acceptance_figures_from_files, load_judged_file
+
+    character, mapping, motion = cmu_motion_on_body
+    motion = motion.slice(0, 8)
+    write_glb(character, motion, tmp_path / "result.glb")
+    write_glb(character, still(character, 8), tmp_path / "source.glb")
+    c2, m2, mo2 = load_judged_file(tmp_path / "result.glb")
+    direct = measure_acceptance(character, mapping, motion)
+    read = measure_acceptance(c2, m2, mo2)
+    np.testing.assert_allclose(read.joints, direct.joints, atol=1e-4)
+    np.testing.assert_allclose(read.lowest, direct.lowest, atol=1e-4)
+    np.testing.assert_array_equal(read.pen_count, direct.pen_count)
+    fig = acceptance_figures_from_files(tmp_path / "result.glb", tmp_path / "source.glb")
+    want = acceptance_figures(character, mapping, motion, character, mapping, still(character, 8))
+    assert fig.end_effector_error_cm == pytest.approx(want.end_effector_error_cm, abs=1e-3)
+    assert fig.float_cm == pytest.approx(want.float_cm, abs=1e-3)
