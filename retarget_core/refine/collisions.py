@@ -35,12 +35,15 @@ from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck, check_frames, contact_instances
 from retarget_core.refine.collision_energy import (
+    ContactPairs,
     ContactTargets,
     TripleSet,
     candidate_triples,
     contact_energy,
     instance_distance,
     near_triples,
+    pair_distance,
+    pair_energy,
     penetration_energy,
     sentinel_vertices,
 )
@@ -101,6 +104,8 @@ class CollisionParams:
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0
     w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
+    w_pair: float = 1.0  # per cm^2 of a contact pair drifting apart beyond the allowance
+    pair_allowance_m: float = 0.01  # a pair may separate this much freely (a sunk hand comes out to the surface)
     w_identity: float = 2.0  # per rad^2 per knot, times the joint's stiffness
     w_smooth: float = 20.0  # per rad^2 of the knots' second difference
     joint_stiffness: dict[str, float] = field(default_factory=lambda: dict(JOINT_STIFFNESS))
@@ -161,6 +166,7 @@ class _Terms:
     poser: PointPoser
     triples: TripleSet
     targets: ContactTargets
+    pairs: ContactPairs
 
 
 def _exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
@@ -224,19 +230,39 @@ def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: C
         with torch.no_grad():
             d0 = instance_distance(ctx.sdf, targets, posed, seg_mats)
         targets.active = (d0 < params.contact_reach_m / scale).float()
-    return _Terms(poser, triples, targets)
+    pairs = _contact_pairs(ctx, prob.frames, points)
+    if pairs.count:
+        with torch.no_grad():
+            pairs.input_distance = pair_distance(pairs, posed)
+    return _Terms(poser, triples, targets, pairs)
+
+
+def _contact_pairs(ctx: RefineContext, frames: Tensor, points: Tensor) -> ContactPairs:
+    """The constraints of the optimised frames whose two vertices are both points (indices into ``points``)."""
+    c = ctx.constraints
+    pos_of = torch.full((ctx.num_frames,), -1, dtype=torch.long)
+    pos_of[frames] = torch.arange(len(frames))
+    point_of = torch.full((ctx.target.num_vertices,), -1, dtype=torch.long)
+    point_of[points] = torch.arange(len(points))
+    if c.count == 0:
+        e = torch.zeros(0, dtype=torch.long)
+        return ContactPairs(e, e, e, torch.zeros(0))
+    f, i, j = pos_of[c.frame], point_of[c.i], point_of[c.j]
+    ok = (f >= 0) & (i >= 0) & (j >= 0)
+    return ContactPairs(f[ok], i[ok], j[ok], torch.zeros(int(ok.sum())))
 
 
 def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     """``terms`` with a poser of only the points its triples and contact targets use (indices remapped)."""
-    t = terms.targets
-    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point]))
+    t, pr = terms.targets, terms.pairs
+    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j]))
     remap = torch.full((len(terms.poser.points),), -1, dtype=torch.long)
     remap[used] = torch.arange(len(used))
     poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
     groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
     targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
-    return _Terms(poser, TripleSet(groups), targets)  # type: ignore[arg-type]
+    pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
+    return _Terms(poser, TripleSet(groups), targets, pairs)  # type: ignore[arg-type]
 
 
 def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, params: CollisionParams,
@@ -247,6 +273,7 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
     parts = {
         "penetration": params.w_penetration * penetration_energy(ctx.sdf, terms.triples, posed, seg_mats, scale),
         "contact": params.w_contact * contact_energy(ctx.sdf, terms.targets, posed, seg_mats, scale),
+        "contact_pairs": params.w_pair * pair_energy(terms.pairs, posed, scale, params.pair_allowance_m / scale),
         "end_effector": (ee.pow(2).sum(-1) * prob.ee_weight).sum(),
         "identity": params.w_identity * (knots.pow(2).sum(-1) * prob.stiffness).sum(),
         "smooth": params.w_smooth * (knots[2:] - 2 * knots[1:-1] + knots[:-2]).pow(2).sum(),
@@ -267,7 +294,8 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
         if it % params.recull_every == 0:
             with torch.no_grad():
                 posed, seg_mats, _ = full_terms.poser(prob.local(knots), prob.trans)
-            terms = _compact(ctx, _Terms(full_terms.poser, near_triples(ctx.sdf, full, posed, seg_mats, within), full_terms.targets))
+            near = near_triples(ctx.sdf, full, posed, seg_mats, within)
+            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs))
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
         for g in opt.param_groups:
@@ -340,7 +368,8 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         )  # fmt: skip
         exempt = _exempt_table(ctx, contacts)
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
-        contact_pts = ctx.constraints.i.unique() if ctx.constraints.count else torch.zeros(0, dtype=torch.long)
+        c = ctx.constraints
+        contact_pts = torch.cat([c.i, c.j]).unique() if c.count else torch.zeros(0, dtype=torch.long)
         points = torch.unique(torch.cat([sentinels, contact_pts]))
         coarse = prob.every(params.sentinel_frame_stride)
         terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
