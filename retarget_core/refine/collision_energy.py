@@ -186,7 +186,42 @@ def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mat
     return ((d.clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
 
 
+@dataclass
+class ContactPairs:
+    """The contact constraints' vertex pairs ``(N,)``: optimised-frame index, the two point indices, and their
+    distance on the input (m): a pair may come closer, not drift apart (the hand stays where it touched)."""
+
+    frame: Tensor
+    i: Tensor
+    j: Tensor
+    input_distance: Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.frame.shape[0])
+
+
+def pair_distance(pairs: ContactPairs, posed: Tensor) -> Tensor:
+    """``(N,)`` distance (m) of each pair's two posed points."""
+    p_n = posed.shape[1]
+    flat = posed.reshape(-1, 3)
+    xi = flat.index_select(0, pairs.frame * p_n + pairs.i)
+    xj = flat.index_select(0, pairs.frame * p_n + pairs.j)
+    return (xi - xj).norm(dim=-1)
+
+
+def pair_energy(pairs: ContactPairs, posed: Tensor, scale: float, allowance: float) -> Tensor:
+    """Sum of ``relu(d - d_input - allowance)^2`` (cm^2 at 1.80 m) over the pairs (a scalar)."""
+    if pairs.count == 0:
+        return posed.new_zeros(())
+    grow = pair_distance(pairs, posed) - pairs.input_distance - allowance
+    return (grow.clamp_min(0.0) * (100.0 * scale)).pow(2).sum()
+
+
 __all__ = [
+    "ContactPairs",
+    "pair_distance",
+    "pair_energy",
     "ContactTargets",
     "SENTINEL_CLUSTERS",
     "TripleSet",

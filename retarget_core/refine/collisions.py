@@ -35,12 +35,15 @@ from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck, check_frames, contact_instances
 from retarget_core.refine.collision_energy import (
+    ContactPairs,
     ContactTargets,
     TripleSet,
     candidate_triples,
     contact_energy,
     instance_distance,
     near_triples,
+    pair_distance,
+    pair_energy,
     penetration_energy,
     sentinel_vertices,
 )
@@ -96,10 +99,13 @@ class CollisionParams:
     finish_lr_fraction: float = 0.3  # the finishing pass starts from a converged pose: smaller steps
     recull_every: int = 8  # steps between re-selections of the triples near their segment
     recull_within_m: float = 0.02  # triples farther outside than this cannot penetrate within 8 steps
+    finish_within_m: float = 0.006  # the finishing pass's steps are small: triples 6 mm outside cannot enter
     finish_slack_m: float = 0.01  # the finishing pass's extra vertices: segments within 1 cm on the input
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0
     w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
+    w_pair: float = 1.0  # per cm^2 of a contact pair drifting apart beyond the allowance
+    pair_allowance_m: float = 0.01  # a pair may separate this much freely (a sunk hand comes out to the surface)
     w_identity: float = 2.0  # per rad^2 per knot, times the joint's stiffness
     w_smooth: float = 20.0  # per rad^2 of the knots' second difference
     joint_stiffness: dict[str, float] = field(default_factory=lambda: dict(JOINT_STIFFNESS))
@@ -136,9 +142,10 @@ class _Problem:
     def every(self, stride: int) -> _Problem:
         """The same problem on every ``stride``-th optimised frame (the residual is smooth over knots every few
         frames, so fewer frames still constrain every knot)."""
-        if stride <= 1:
-            return self
-        k = torch.arange(0, len(self.frames), stride)
+        return self if stride <= 1 else self.subset(torch.arange(0, len(self.frames), stride))
+
+    def subset(self, k: Tensor) -> _Problem:
+        """The problem on optimised frames ``k`` (indices into :attr:`frames`)."""
         return _Problem(self.joints, self.stiffness, self.frames[k], self.basis[k], self.local_in[k], self.trans[k],
                         self.ee_joints, self.ee_weight, self.ee_in[k])  # fmt: skip
 
@@ -159,6 +166,7 @@ class _Terms:
     poser: PointPoser
     triples: TripleSet
     targets: ContactTargets
+    pairs: ContactPairs
 
 
 def _exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
@@ -169,11 +177,17 @@ def _exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
     return ex
 
 
-def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, points: Tensor) -> ContactTargets:
-    """Contact instances of the optimised frames with their hand's points (indices into ``points``)."""
+def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, points: Tensor,
+                     hand_points: Tensor | None = None) -> ContactTargets:  # fmt: skip
+    """Contact instances of the optimised frames with their hand's points (indices into ``points``; only
+    vertices of ``hand_points`` when given: the sentinels and contact vertices, a few per hand)."""
     pos_of = torch.full((ctx.num_frames,), -1, dtype=torch.long)
     pos_of[frames] = torch.arange(len(frames))
     point_part = ctx.parts.vertex_part.index_select(0, points)
+    if hand_points is not None:
+        eligible = torch.zeros(ctx.target.num_vertices, dtype=torch.bool)
+        eligible[hand_points] = True
+        point_part = torch.where(eligible[points], point_part, torch.full_like(point_part, -1))
     members = ctx.parts.cluster_members()
     segments = {ci: [s for s in members[name] if ctx.sdf.grids[s] is not None] for ci, name in enumerate(CLUSTERS)}
     rows: list[tuple[int, int, int, int]] = []
@@ -202,7 +216,8 @@ def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, p
 
 
 def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: ContactInstances, exempt: Tensor,
-                 params: CollisionParams, scale: float, slack: float | Tensor) -> _Terms:  # fmt: skip
+                 params: CollisionParams, scale: float, slack: float | Tensor,
+                 hand_points: Tensor | None = None) -> _Terms:  # fmt: skip
     """Poser, candidate triples (segments within ``slack`` (m, or per point) on the input pose) and contact
     targets of a point set."""
     poser = PointPoser(ctx.target, points, ctx.parts.joints)
@@ -210,12 +225,44 @@ def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: C
         posed, seg_mats, _ = poser(prob.local_in, prob.trans)
     triples = candidate_triples(ctx.sdf, points, posed, seg_mats, prob.frames, exempt, ctx.sdf.allowed,
                                 slack, params.clearance_m / scale, params.contact_tolerance_m / scale)  # fmt: skip
-    targets = _contact_targets(ctx, contacts, prob.frames, points)
+    targets = _contact_targets(ctx, contacts, prob.frames, points, hand_points)
     if targets.count:
         with torch.no_grad():
             d0 = instance_distance(ctx.sdf, targets, posed, seg_mats)
         targets.active = (d0 < params.contact_reach_m / scale).float()
-    return _Terms(poser, triples, targets)
+    pairs = _contact_pairs(ctx, prob.frames, points)
+    if pairs.count:
+        with torch.no_grad():
+            pairs.input_distance = pair_distance(pairs, posed)
+    return _Terms(poser, triples, targets, pairs)
+
+
+def _contact_pairs(ctx: RefineContext, frames: Tensor, points: Tensor) -> ContactPairs:
+    """The constraints of the optimised frames whose two vertices are both points (indices into ``points``)."""
+    c = ctx.constraints
+    pos_of = torch.full((ctx.num_frames,), -1, dtype=torch.long)
+    pos_of[frames] = torch.arange(len(frames))
+    point_of = torch.full((ctx.target.num_vertices,), -1, dtype=torch.long)
+    point_of[points] = torch.arange(len(points))
+    if c.count == 0:
+        e = torch.zeros(0, dtype=torch.long)
+        return ContactPairs(e, e, e, torch.zeros(0))
+    f, i, j = pos_of[c.frame], point_of[c.i], point_of[c.j]
+    ok = (f >= 0) & (i >= 0) & (j >= 0)
+    return ContactPairs(f[ok], i[ok], j[ok], torch.zeros(int(ok.sum())))
+
+
+def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
+    """``terms`` with a poser of only the points its triples and contact targets use (indices remapped)."""
+    t, pr = terms.targets, terms.pairs
+    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j]))
+    remap = torch.full((len(terms.poser.points),), -1, dtype=torch.long)
+    remap[used] = torch.arange(len(used))
+    poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
+    groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
+    targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
+    pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
+    return _Terms(poser, TripleSet(groups), targets, pairs)  # type: ignore[arg-type]
 
 
 def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, params: CollisionParams,
@@ -226,6 +273,7 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
     parts = {
         "penetration": params.w_penetration * penetration_energy(ctx.sdf, terms.triples, posed, seg_mats, scale),
         "contact": params.w_contact * contact_energy(ctx.sdf, terms.targets, posed, seg_mats, scale),
+        "contact_pairs": params.w_pair * pair_energy(terms.pairs, posed, scale, params.pair_allowance_m / scale),
         "end_effector": (ee.pow(2).sum(-1) * prob.ee_weight).sum(),
         "identity": params.w_identity * (knots.pow(2).sum(-1) * prob.stiffness).sum(),
         "smooth": params.w_smooth * (knots[2:] - 2 * knots[1:-1] + knots[:-2]).pow(2).sum(),
@@ -234,17 +282,20 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
 
 
 def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, steps: int, lr: float,
-              params: CollisionParams, scale: float) -> dict[str, float]:  # fmt: skip
-    """Adam on ``knots`` in place (cosine-decayed step size); the last energy terms."""
+              params: CollisionParams, scale: float, within_m: float | None = None) -> dict[str, float]:  # fmt: skip
+    """Adam on ``knots`` in place (cosine-decayed step size); the last energy terms.
+    Every ``recull_every`` steps only the triples within ``within_m`` (default ``recull_within_m``) are kept."""
+    within = (params.recull_within_m if within_m is None else within_m) / scale
     knots.requires_grad_(True)
     opt = torch.optim.Adam([knots], lr=lr)
     last: dict[str, Tensor] = {}
-    full = terms.triples
+    full, full_terms = terms.triples, terms
     for it in range(steps):
         if it % params.recull_every == 0:
             with torch.no_grad():
-                posed, seg_mats, _ = terms.poser(prob.local(knots), prob.trans)
-            terms = _Terms(terms.poser, near_triples(ctx.sdf, full, posed, seg_mats, params.recull_within_m / scale), terms.targets)
+                posed, seg_mats, _ = full_terms.poser(prob.local(knots), prob.trans)
+            near = near_triples(ctx.sdf, full, posed, seg_mats, within)
+            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs))
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
         for g in opt.param_groups:
@@ -295,14 +346,14 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     contacts = contact_instances(sdf, ctx.constraints)
     tol = params.penetration_tolerance_m / scale
     before = check_frames(ch, sdf, rot_in, trans, torch.arange(f_n), contacts, tol)
-    timings = {"check_before": time.perf_counter() - t0}
+    timings = {"check_before": time.process_time() - cpu0}
     ctx.report_progress(0.3)
     report: dict[str, Any] = {"method": "optimisation: B-spline rotation residuals on sentinel SDF energy"}
     active = _active_frames(before, contacts, f_n, params, scale)
     names = [n for n in params.joint_stiffness if n in ctx.target_mapping.joints]
     out_rot, iterations, terms = rot_in, 0, {}
     if len(active) and names:
-        t = time.perf_counter()
+        t = time.process_time()
         basis_all = bspline_basis(f_n, params.knot_spacing)
         ee_names = [n for n in params.end_effectors if n in ctx.target_mapping.joints]
         ee_joints = torch.tensor([ctx.target_mapping.joints[n] for n in ee_names], dtype=torch.long)
@@ -317,38 +368,40 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         )  # fmt: skip
         exempt = _exempt_table(ctx, contacts)
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
-        contact_pts = ctx.constraints.i.unique() if ctx.constraints.count else torch.zeros(0, dtype=torch.long)
+        c = ctx.constraints
+        contact_pts = torch.cat([c.i, c.j]).unique() if c.count else torch.zeros(0, dtype=torch.long)
         points = torch.unique(torch.cat([sentinels, contact_pts]))
         coarse = prob.every(params.sentinel_frame_stride)
         terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
-        timings["setup"] = time.perf_counter() - t
-        t = time.perf_counter()
+        timings["setup"] = time.process_time() - t
+        t = time.process_time()
         terms = _optimise(ctx, coarse, terms_in, knots, params.iterations, params.lr, params, scale)
         iterations = params.iterations
-        timings["sentinel_loop"] = time.perf_counter() - t
+        timings["sentinel_loop"] = time.process_time() - t
         ctx.report_progress(0.6)
         # Finishing pass: every vertex penetrating in the input joins the sentinels.
         deep = before.depth[active] > 0
         extra = torch.nonzero(deep.any(0)).flatten()
         if params.finish_iterations and len(extra):
-            t = time.perf_counter()
+            t = time.process_time()
             is_sentinel = torch.zeros(ch.num_vertices, dtype=torch.bool)
             is_sentinel[points] = True
+            hand_points = points
             points = torch.unique(torch.cat([points, extra]))
             slack = torch.where(is_sentinel[points], params.candidate_slack_m / scale, params.finish_slack_m / scale)
-            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack)
+            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack, hand_points)
             report["finish_points"] = int(len(points))
             report["finish_triples"] = terms_fin.triples.count
             terms = _optimise(ctx, prob, terms_fin, knots, params.finish_iterations,
-                              params.lr * params.finish_lr_fraction, params, scale)  # fmt: skip
+                              params.lr * params.finish_lr_fraction, params, scale, within_m=params.finish_within_m)  # fmt: skip
             iterations += params.finish_iterations
-            timings["finish_loop"] = time.perf_counter() - t
+            timings["finish_loop"] = time.process_time() - t
         ctx.report_progress(0.8)
         # Never worse: blend back to the input around frames that got worse (all vertices checked).
-        t = time.perf_counter()
+        t = time.process_time()
         resid_all = (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
         joints = prob.joints.tolist()
         weight = torch.ones(f_n)
@@ -383,7 +436,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         out_rot = rot.normalize(_apply_residual(rot_in, joints, resid_all * weight[:, None, None]))
         keep = resid_all.abs().amax(dim=(1, 2)) * weight <= params.changed_rad
         out_rot[keep] = rot_in[keep]
-        timings["check_after"] = time.perf_counter() - t
+        timings["check_after"] = time.process_time() - t
         report["fallback_frames"] = int((weight < 1).sum())
         changed = ~keep
     else:
@@ -393,7 +446,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     report.update({
         "frames_changed": int(changed.sum()), "frames_optimised": int(len(active)), "iterations": iterations,
         "energy_terms": {k: round(v, 3) for k, v in terms.items()},
-        "timings_s": {k: round(v, 3) for k, v in timings.items()}, "seconds": round(time.perf_counter() - t0, 3),
+        "cpu_timings_s": {k: round(v, 3) for k, v in timings.items()}, "seconds": round(time.perf_counter() - t0, 3),
         "cpu_seconds": round(time.process_time() - cpu0, 3),
     })  # fmt: skip
     ctx.report_progress(1.0)
