@@ -214,6 +214,7 @@ def evaluate(
     source_glb_body: Annotated[
         str | None, typer.Option(help="Write each clip as a GLB on this body first and use that (as a studio sends it)")
     ] = None,
+    jobs: Annotated[int, typer.Option(help="Clips evaluated in parallel processes (one torch thread each)")] = 1,
 ) -> None:
     """Run methods over motions x bodies; print and write the acceptance figures by body and clip group."""
     from retarget_core.evaluation import run_evaluation
@@ -236,7 +237,7 @@ def evaluate(
     try:
         table = run_evaluation(
             files, bodies, method or None, out, max_frames, fps=fps, log=console.print, source_character=source_body,
-            source_glb_body=source_glb_body, body_groups=groups,
+            source_glb_body=source_glb_body, body_groups=groups, jobs=jobs,
         )  # fmt: skip
     except (RetargetError, ValueError, FileNotFoundError) as exc:
         _fail(str(exc))

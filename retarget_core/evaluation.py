@@ -288,6 +288,7 @@ def run_evaluation(
     threads: int | None = MEASURE_THREADS,
     source_character: str | Path | None = None,
     source_glb_body: str | Path | None = None,
+    jobs: int = 1,
 ) -> EvalTable:
     """Run ``methods`` (default: copy) on every motion x body and summarise.
 
@@ -298,14 +299,15 @@ def run_evaluation(
     sends; the judge's setting). Bodies are grouped by ``body_groups`` (name -> group) or by bulk index into
     thirds (:func:`bulk_groups`); a clip is a contact clip when at least ``contact_fraction`` of its frames
     have a hand self-contact on the source body. Writes ``eval.json`` and ``eval.md`` into ``out_dir`` when
-    given. ``threads``: torch threads during the run (see :data:`MEASURE_THREADS`)."""
+    given. ``threads``: torch threads during the run (see :data:`MEASURE_THREADS`); ``jobs``: clips evaluated in
+    parallel worker processes (one torch thread each)."""
     methods = list(methods or ["copy"])
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; available: {sorted(METHODS)}")
     with torch_threads(threads):
         return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups,
-                               log, source_character, source_glb_body)  # fmt: skip
+                               log, source_character, source_glb_body, jobs)  # fmt: skip
 
 
 def source_as_glb(motion: Path, body: str | Path, out: Path, max_frames: int | None, fps: float | None) -> Path:
@@ -334,10 +336,9 @@ def _run_evaluation(
     log: Callable[[str], None] | None,
     source_character: str | Path | None,
     source_glb_body: str | Path | None,
+    jobs: int,
 ) -> EvalTable:
     import tempfile
-
-    from retarget_core.pipeline import prepare, refine
 
     started = time.perf_counter()
     order = ["copy"] + [m for m in methods if m != "copy"]
@@ -352,46 +353,25 @@ def _run_evaluation(
     rows: list[EvalRow] = []
     clips: list[ClipInfo] = []
     scratch = tempfile.TemporaryDirectory(prefix="retarget-eval-")
+    tasks = []
     for path in motions:
         if source_glb_body is not None:
             path = source_as_glb(path, source_glb_body, Path(scratch.name) / f"{path.stem}.glb", max_frames, fps)
-        clip_info: ClipInfo | None = None
-        src_acc: ClipAcceptance | None = None
-        for b, info in zip(bodies, infos, strict=True):
-            t = time.perf_counter()
-            prepared = prepare(JobInputs(path, b, source_character, method_options("copy", fps)), max_frames=max_frames)
-            found = prepared.contacts
-            if clip_info is None or src_acc is None:
-                clip_info = _clip_info(prepared, contact_fraction)
-                clips.append(clip_info)
-                src_acc = measure_acceptance(prepared.source_body.character, prepared.source_body.mapping,
-                                             prepared.source_view)  # fmt: skip
-                say(f"{clip_info.name}: {clip_info.frames} frames, {clip_info.contact_frames} with hand contacts "
-                    f"({clip_info.group})")  # fmt: skip
-            tgt = prepared.target
-            copy_fig: AcceptanceFigures | None = None
-            for m in order:
-                t_m = time.perf_counter()
-                after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
-                ms = 0.0 if after is None else 1000 * (time.perf_counter() - t_m) / prepared.before.num_frames
-                motion = prepared.before if after is None else after
-                fig = figures_from_measures(measure_acceptance(tgt.character, tgt.mapping, motion), src_acc)
-                p = prepared
-                job = measure_job(
-                    p.source_body.character, p.source_body.mapping, p.source_view, tgt.character, tgt.mapping,
-                    p.before, after, source_contacts=found, constraints=p.constraints, include_series=False,
-                    threads=None, measure_source_motion=False,
-                )  # fmt: skip
-                if copy_fig is None:
-                    copy_fig = fig
-                met = {k: c.met for k, c in meets_targets(fig, copy_fig).items()}
-                rows.append(EvalRow(method=m, body=info.name, clip=clip_info.name,
-                                    values={**_acceptance_values(fig), **_our_values(job.report, m)},
-                                    targets_met=met, ms_per_frame=round(ms, 3)))  # fmt: skip
-            v = rows[-1].values
-            say(f"  {info.name:>20}: {order[-1]} pen %v {_fmt(v['pen_percent'])}, contact pres. "
-                f"{_fmt(v['contact_preservation'])}, foot acc. {_fmt(v['foot_accuracy'])} "
-                f"({time.perf_counter() - t:.1f}s)")  # fmt: skip
+        tasks.append((path, bodies, [i.name for i in infos], order, max_frames, fps, contact_fraction, source_character))
+    if jobs > 1 and len(tasks) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+            results = list(pool.map(_evaluate_clip_in_worker, tasks))
+    else:
+        results = [_evaluate_clip(*t, log=say) for t in tasks]
+    for clip_info, clip_rows, lines in results:
+        clips.append(clip_info)
+        rows += clip_rows
+        if jobs > 1:
+            for line in lines:
+                say(line)
     scratch.cleanup()
 
     body_group = {i.name: i.group for i in infos}
@@ -409,13 +389,69 @@ def _run_evaluation(
         per_body=per_body,
         seconds=round(time.perf_counter() - started, 2),
         settings={"max_frames": max_frames, "fps": fps, "contact_fraction": contact_fraction,
-                  "source_glb_body": str(source_glb_body) if source_glb_body else None,
+                  "source_glb_body": str(source_glb_body) if source_glb_body else None, "jobs": jobs,
                   "methods": {m: list(METHODS[m]) for m in order}},  # fmt: skip
     )
     say(table.to_markdown())
     if out_dir is not None:
         write_eval_table(table, out_dir)
     return table
+
+
+def _evaluate_clip(
+    path: Path, bodies: list[str | Path], body_names: list[str], order: list[str], max_frames: int | None,
+    fps: float | None, contact_fraction: float, source_character: str | Path | None,
+    log: Callable[[str], None] | None = None,
+) -> tuple[ClipInfo, list[EvalRow], list[str]]:
+    """Every method on one clip x every body: the clip's info, the rows and the log lines."""
+    from retarget_core.pipeline import prepare, refine
+
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        lines.append(line)
+        if log is not None:
+            log(line)
+
+    rows: list[EvalRow] = []
+    clip_info: ClipInfo | None = None
+    src_acc: ClipAcceptance | None = None
+    for b, body_name in zip(bodies, body_names, strict=True):
+        t = time.perf_counter()
+        prepared = prepare(JobInputs(path, b, source_character, method_options("copy", fps)), max_frames=max_frames)
+        p, tgt = prepared, prepared.target
+        if clip_info is None or src_acc is None:
+            clip_info = _clip_info(prepared, contact_fraction)
+            src_acc = measure_acceptance(p.source_body.character, p.source_body.mapping, p.source_view)
+            say(f"{clip_info.name}: {clip_info.frames} frames, {clip_info.contact_frames} with hand contacts "
+                f"({clip_info.group})")  # fmt: skip
+        copy_fig: AcceptanceFigures | None = None
+        for m in order:
+            t_m = time.perf_counter()
+            after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
+            ms = 0.0 if after is None else 1000 * (time.perf_counter() - t_m) / prepared.before.num_frames
+            fig = figures_from_measures(measure_acceptance(tgt.character, tgt.mapping, p.before if after is None else after), src_acc)
+            job = measure_job(
+                p.source_body.character, p.source_body.mapping, p.source_view, tgt.character, tgt.mapping,
+                p.before, after, source_contacts=p.contacts, constraints=p.constraints, include_series=False,
+                threads=None, measure_source_motion=False,
+            )  # fmt: skip
+            copy_fig = copy_fig or fig
+            met = {k: c.met for k, c in meets_targets(fig, copy_fig).items()}
+            rows.append(EvalRow(method=m, body=body_name, clip=clip_info.name,
+                                values={**_acceptance_values(fig), **_our_values(job.report, m)},
+                                targets_met=met, ms_per_frame=round(ms, 3)))  # fmt: skip
+        v = rows[-1].values
+        say(f"  {body_name:>20}: {order[-1]} pen %v {_fmt(v['pen_percent'])}, contact pres. "
+            f"{_fmt(v['contact_preservation'])}, foot acc. {_fmt(v['foot_accuracy'])} ({time.perf_counter() - t:.1f}s)")
+    assert clip_info is not None
+    return clip_info, rows, lines
+
+
+def _evaluate_clip_in_worker(task: tuple[Any, ...]) -> tuple[ClipInfo, list[EvalRow], list[str]]:
+    """:func:`_evaluate_clip` in a worker process (one torch thread: the processes share the cores)."""
+    torch.set_num_threads(1)
+    return _evaluate_clip(*task)
 
 
 def _clip_info(prepared: Any, contact_fraction: float) -> ClipInfo:
