@@ -146,71 +146,49 @@ def measure_job(
     while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting). ``measure_source_motion``:
     also measure the source on its own body (the report's ``source``, its warnings in ``notes``)."""
     with torch_threads(threads):
-        return _measure_job(
-            source_body, source_mapping, source_view, target, target_mapping, before, after, reference,
-            source_contacts, constraints, include_series, context, notes, measure_source_motion,
+        lengths = {"source view": source_view.num_frames, "before": before.num_frames}
+        if after is not None:
+            lengths["after"] = after.num_frames
+        if reference is not None:
+            lengths["reference"] = reference.num_frames
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"the motions to measure must have the same number of frames, got {lengths}")
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        found = source_contacts or detect_source_contacts(source_body, source_mapping, source_view)
+        timings["contacts"] = time.perf_counter() - t
+        t = time.perf_counter()
+        if constraints is None:
+            constraints = carry_contacts(found.self_contacts, source_body, source_mapping, target, target_mapping)
+        timings["correspondence"] = time.perf_counter() - t
+        t = time.perf_counter()
+        sdf = body_assets(target, target_mapping)[0].sdf
+        timings["sdf"] = time.perf_counter() - t
+        t = time.perf_counter()
+        ref_measures = None
+        if reference is not None:
+            _, ref_measures = compute_metrics(target, target_mapping, sdf, reference)
+        before_metrics, before_measures = compute_metrics(
+            target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet
+        )
+        after_metrics, after_measures = None, None
+        if after is not None:
+            after_metrics, after_measures = compute_metrics(
+                target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
+                reference=ref_measures, source_feet=found.feet,
+            )  # fmt: skip
+        timings["metrics"] = time.perf_counter() - t
+        t = time.perf_counter()
+        source = None
+        if measure_source_motion:
+            source_sdf = body_assets(source_body, source_mapping)[0].sdf
+            source = measure_source(source_body, source_mapping, source_view, source_sdf, found.feet)[0]
+        timings["source"] = time.perf_counter() - t
+        report = build_metrics_report(
+            before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
+            {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series, source,
         )  # fmt: skip
-
-
-def _measure_job(
-    source_body: Character,
-    source_mapping: JointMapping,
-    source_view: Motion,
-    target: Character,
-    target_mapping: JointMapping,
-    before: Motion,
-    after: Motion | None,
-    reference: Motion | None,
-    source_contacts: SourceContactResult | None,
-    constraints: ContactConstraints | None,
-    include_series: bool,
-    context: dict[str, Any] | None,
-    notes: list[str] | None,
-    measure_source_motion: bool,
-) -> JobMeasurement:
-    lengths = {"source view": source_view.num_frames, "before": before.num_frames}
-    if after is not None:
-        lengths["after"] = after.num_frames
-    if reference is not None:
-        lengths["reference"] = reference.num_frames
-    if len(set(lengths.values())) != 1:
-        raise ValueError(f"the motions to measure must have the same number of frames, got {lengths}")
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-    found = source_contacts or detect_source_contacts(source_body, source_mapping, source_view)
-    timings["contacts"] = time.perf_counter() - t
-    t = time.perf_counter()
-    if constraints is None:
-        constraints = carry_contacts(found.self_contacts, source_body, source_mapping, target, target_mapping)
-    timings["correspondence"] = time.perf_counter() - t
-    t = time.perf_counter()
-    sdf = body_assets(target, target_mapping)[0].sdf
-    timings["sdf"] = time.perf_counter() - t
-    t = time.perf_counter()
-    ref_measures = None
-    if reference is not None:
-        _, ref_measures = compute_metrics(target, target_mapping, sdf, reference)
-    before_metrics, before_measures = compute_metrics(
-        target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet
-    )
-    after_metrics, after_measures = None, None
-    if after is not None:
-        after_metrics, after_measures = compute_metrics(
-            target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
-            reference=ref_measures, source_feet=found.feet,
-        )  # fmt: skip
-    timings["metrics"] = time.perf_counter() - t
-    t = time.perf_counter()
-    source = None
-    if measure_source_motion:
-        source_sdf = body_assets(source_body, source_mapping)[0].sdf
-        source = measure_source(source_body, source_mapping, source_view, source_sdf, found.feet)[0]
-    timings["source"] = time.perf_counter() - t
-    report = build_metrics_report(
-        before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
-        {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series, source,
-    )  # fmt: skip
-    return JobMeasurement(report, found, constraints, before_measures, after_measures)
+        return JobMeasurement(report, found, constraints, before_measures, after_measures)
 
 
 __all__ = [
