@@ -396,3 +396,17 @@ def test_a_written_glb_is_judged_like_the_motion_it_holds(cmu_motion_on_body, tm
     want = acceptance_figures(character, mapping, motion, character, mapping, still(character, 8))
     assert fig.end_effector_error_cm == pytest.approx(want.end_effector_error_cm, abs=1e-3)
     assert fig.float_cm == pytest.approx(want.float_cm, abs=1e-3)
+
+
+def test_head_bent_forward_sinks_the_chin_into_the_chest(shared_data: Path) -> None:
+    """Reported apart (head %v): a nod of 2 x 30 degrees on the heavy body puts the chin into the chest."""
+    from retarget_core.loading import load_character
+
+    loaded = load_character(shared_data / "characters" / "mh_male_bulky.glb")
+    nod = torch.tensor([math.sin(math.radians(15.0)), 0.0, 0.0, math.cos(math.radians(15.0))])  # 30 deg about x
+    bent = still(loaded.character, 1, {"Neck": nod, "Head": nod})
+    upright = measure_acceptance(loaded.character, loaded.mapping, still(loaded.character, 1))
+    m = measure_acceptance(loaded.character, loaded.mapping, bent)
+    assert upright.head_count[0] == 0
+    assert m.head_count[0] > 20 and 0.005 < m.head_max[0] < 0.05
+    assert m.pen_count[0] == upright.pen_count[0]  # limbs untouched
