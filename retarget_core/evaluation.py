@@ -29,6 +29,7 @@ from retarget_core.metrics.acceptance import (
     AcceptanceFigures,
     ClipAcceptance,
     figures_from_measures,
+    load_judged_file,
     measure_acceptance,
     meets_targets,
 )
@@ -422,7 +423,7 @@ def _evaluate_clip(
         p, tgt = prepared, prepared.target
         if clip_info is None or src_acc is None:
             clip_info = _clip_info(prepared, contact_fraction)
-            src_acc = measure_acceptance(p.source_body.character, p.source_body.mapping, p.source_view)
+            src_acc = _source_acceptance(path, prepared, max_frames)
             say(f"{clip_info.name}: {clip_info.frames} frames, {clip_info.contact_frames} with hand contacts "
                 f"({clip_info.group})")  # fmt: skip
         copy_fig: AcceptanceFigures | None = None
@@ -446,6 +447,20 @@ def _evaluate_clip(
             f"{_fmt(v['contact_preservation'])}, foot acc. {_fmt(v['foot_accuracy'])} ({time.perf_counter() - t:.1f}s)")
     assert clip_info is not None
     return clip_info, rows, lines
+
+
+def _source_acceptance(path: Path, prepared: Any, max_frames: int | None) -> ClipAcceptance:
+    """The judge's measures of the source: a GLB with its own body as the judge reads the file (its own floor,
+    no re-grounding); otherwise the source motion on the body the pipeline gave it."""
+    if path.suffix.lower() in (".glb", ".gltf"):
+        try:
+            character, mapping, motion = load_judged_file(path)
+        except ValueError:
+            pass
+        else:
+            return measure_acceptance(character, mapping, motion.slice(0, max_frames))
+    p = prepared
+    return measure_acceptance(p.source_body.character, p.source_body.mapping, p.source_view)
 
 
 def _evaluate_clip_in_worker(task: tuple[Any, ...]) -> tuple[ClipInfo, list[EvalRow], list[str]]:
