@@ -423,7 +423,7 @@ def _evaluate_clip(
         p, tgt = prepared, prepared.target
         if clip_info is None or src_acc is None:
             clip_info = _clip_info(prepared, contact_fraction)
-            src_acc = _source_acceptance(path, prepared, max_frames)
+            src_acc = _source_acceptance(path, prepared)
             say(f"{clip_info.name}: {clip_info.frames} frames, {clip_info.contact_frames} with hand contacts "
                 f"({clip_info.group})")  # fmt: skip
         copy_fig: AcceptanceFigures | None = None
@@ -449,7 +449,7 @@ def _evaluate_clip(
     return clip_info, rows, lines
 
 
-def _source_acceptance(path: Path, prepared: Any, max_frames: int | None) -> ClipAcceptance:
+def _source_acceptance(path: Path, prepared: Any) -> ClipAcceptance:
     """The judge's measures of the source: a GLB with its own body as the judge reads the file (its own floor,
     no re-grounding); otherwise the source motion on the body the pipeline gave it."""
     if path.suffix.lower() in (".glb", ".gltf"):
@@ -458,7 +458,10 @@ def _source_acceptance(path: Path, prepared: Any, max_frames: int | None) -> Cli
         except ValueError:
             pass
         else:
-            return measure_acceptance(character, mapping, motion.slice(0, max_frames))
+            from retarget_core.resample import resample
+
+            clip = resample(motion, prepared.source_view.fps).slice(0, prepared.source_view.num_frames)
+            return measure_acceptance(character, mapping, clip)
     p = prepared
     return measure_acceptance(p.source_body.character, p.source_body.mapping, p.source_view)
 
