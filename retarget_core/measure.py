@@ -168,14 +168,16 @@ def measure_job(
         ref_measures = None
         if reference is not None:
             _, ref_measures = compute_metrics(target, target_mapping, sdf, reference)
+        hands = found.self_contacts.distances  # the source's hand-to-part distances, for the false contacts
         before_metrics, before_measures = compute_metrics(
-            target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet
+            target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet,
+            source_hand_distances=hands,
         )
         after_metrics, after_measures = None, None
         if after is not None:
             after_metrics, after_measures = compute_metrics(
                 target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
-                reference=ref_measures, source_feet=found.feet,
+                reference=ref_measures, source_feet=found.feet, source_hand_distances=hands,
             )  # fmt: skip
         timings["metrics"] = time.perf_counter() - t
         t = time.perf_counter()
