@@ -23,7 +23,7 @@ from torch import Tensor
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.energy.sdf import PartSDF, segment_distance, vertex_clusters
 
-SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "left_arm", "right_arm", "left_leg", "right_leg")
+SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
 
 
 def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float) -> Tensor:
@@ -62,11 +62,14 @@ class TripleSet:
 
 def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Tensor, frames: Tensor,
                       exempt: Tensor, allowed: Tensor, slack: float | Tensor, clearance: float,
-                      contact_tolerance: float, only_penetrating: bool = False) -> TripleSet:  # fmt: skip
+                      contact_tolerance: float, only_penetrating: bool = False,
+                      contact_weight: float = 1.0) -> TripleSet:  # fmt: skip
     """Triples for point vertices ``points (P,)`` posed ``(Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``
     at clip frames ``frames (Fa,)``: every allowed segment whose grid box, grown by ``slack``, holds the point
     and whose distance is below ``slack`` (m, or ``(P,)`` per point). ``exempt (F, S, 6)``: segment-of-point x cluster pairs in contact
-    per clip frame (their tolerance is ``contact_tolerance``). ``only_penetrating``: keep depths > 0 only."""
+    per clip frame (their tolerance is ``contact_tolerance``, their weight times ``contact_weight``: the hand is
+    brought to the surface by the contact term, the sunk part only nudged out). ``only_penetrating``: keep
+    depths > 0 only."""
     parts = sdf.parts
     part = parts.vertex_part.index_select(0, points)  # (P,)
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
@@ -99,7 +102,7 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
                 continue
             ex = exempt[frames[f_i], part[pt], cluster[j]]
             tol = torch.where(ex, torch.full_like(rest, contact_tolerance), torch.full_like(rest, -clearance))
-            weight = sdf.geodesic_weight[points[pt], j]
+            weight = sdf.geodesic_weight[points[pt], j] * torch.where(ex, contact_weight, 1.0)
             groups.append((j, f_i, pt, tol, weight, rest))
     return TripleSet(groups)
 

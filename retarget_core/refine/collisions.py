@@ -84,6 +84,7 @@ class CollisionParams:
     candidate_slack_m: float = 0.06  # segments a point may reach while the optimiser moves it
     clearance_m: float = 0.001  # collisions are pushed this far outside the surface
     contact_tolerance_m: float = 0.002  # a hand may press this deep into the part it touches
+    contact_penetration_weight: float = 0.1  # a touching hand's own penetration counts a tenth of a collision
     contact_reach_m: float = 0.15  # paper 1: a contact is pulled in only when it starts within 15 cm
     contact_ok_m: float = 0.015  # a contact closer than this counts as kept by the never-worse check (the
     # source-contact distance of ACCEPTANCE.md; a contact is judged kept below 2.5 cm)
@@ -224,7 +225,8 @@ def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: C
     with torch.no_grad():
         posed, seg_mats, _ = poser(prob.local_in, prob.trans)
     triples = candidate_triples(ctx.sdf, points, posed, seg_mats, prob.frames, exempt, ctx.sdf.allowed,
-                                slack, params.clearance_m / scale, params.contact_tolerance_m / scale)  # fmt: skip
+                                slack, params.clearance_m / scale, params.contact_tolerance_m / scale,
+                                contact_weight=params.contact_penetration_weight)  # fmt: skip
     targets = _contact_targets(ctx, contacts, prob.frames, points, hand_points)
     if targets.count:
         with torch.no_grad():
