@@ -26,11 +26,15 @@ from retarget_core.energy.sdf import PartSDF, segment_distance, vertex_clusters
 SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
 
 
-def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float) -> Tensor:
-    """``(P,)`` vertex indices: per rest-pose cell of edge ``cell_m`` (body scale) and part of the limb and head
-    clusters, the vertex nearest the cell's centroid."""
+def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float, segments: list[int] | None = None) -> Tensor:
+    """``(P,)`` vertex indices: per rest-pose cell of edge ``cell_m`` (body scale) and part of the
+    :data:`SENTINEL_CLUSTERS` (or of ``segments`` when given), the vertex nearest the cell's centroid."""
     parts = sdf.parts
-    keep_cluster = torch.tensor([CLUSTERS[c] in SENTINEL_CLUSTERS for c in parts.cluster])
+    if segments is None:
+        keep_cluster = torch.tensor([CLUSTERS[c] in SENTINEL_CLUSTERS for c in parts.cluster])
+    else:
+        keep_cluster = torch.zeros(parts.num_parts, dtype=torch.bool)
+        keep_cluster[segments] = True
     vc = vertex_clusters(rest_vertices, parts.vertex_part, cell_m, max_members=64)
     c_n = vc.part.shape[0]
     counts = torch.bincount(vc.of_vertex, minlength=c_n).to(rest_vertices.dtype)

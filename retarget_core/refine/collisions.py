@@ -81,6 +81,7 @@ class CollisionParams:
     lr: float = 0.02  # radians per Adam step at the start (a cm-deep arm needs ~0.1 rad)
     lr_final_fraction: float = 0.1  # cosine decay to this fraction, so the knots settle
     sentinel_cell_m: float = 0.08  # one sentinel per 8 cm cell of a limb or the head: about 500
+    hand_cell_m: float = 0.03  # hands in contact: one per 3 cm cell (a few dozen per hand)
     candidate_slack_m: float = 0.06  # segments a point may reach while the optimiser moves it
     clearance_m: float = 0.001  # collisions are pushed this far outside the surface
     contact_tolerance_m: float = 0.002  # a hand may press this deep into the part it touches
@@ -372,6 +373,9 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
         c = ctx.constraints
         contact_pts = torch.cat([c.i, c.j]).unique() if c.count else torch.zeros(0, dtype=torch.long)
+        if contacts.count:  # hands in contact get denser sentinels: the contact term needs their nearest point
+            hands = contacts.hand.unique().tolist()
+            contact_pts = torch.cat([contact_pts, sentinel_vertices(sdf, ch.vertices.float(), params.hand_cell_m / scale, hands)])
         points = torch.unique(torch.cat([sentinels, contact_pts]))
         coarse = prob.every(params.sentinel_frame_stride)
         terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
