@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -122,6 +123,16 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 4)
 
 
+def _commit() -> str | None:
+    """The checked-out commit (with ``+dirty`` when the tree has changes), or None outside git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        return head + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--clips", nargs="*", default=list(DEFAULT_CLIPS))
@@ -155,6 +166,7 @@ def main() -> None:
                                                   if r["judge_pairs_deep_frames_ratio"] is not None), default=None),
         "jerk_ratio_vs_before_max": max((r["jerk_ratio_vs_before"] for r in rows if r["jerk_ratio_vs_before"] is not None), default=None),
         "torch_threads": torch.get_num_threads(),
+        "commit": _commit(),
     }  # fmt: skip
     print(json.dumps(summary))
     args.out.parent.mkdir(parents=True, exist_ok=True)
