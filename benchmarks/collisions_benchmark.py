@@ -133,6 +133,26 @@ def _commit() -> str | None:
         return None
 
 
+def _write(rows: list[dict[str, Any]], out: Path) -> dict[str, Any]:
+    """Write the rows so far and their summary to ``out`` (after every row: a long run leaves its results)."""
+    summary = {
+        "rows": len(rows),
+        "ms_per_frame_mean": round(sum(r["ms_per_frame"] for r in rows) / len(rows), 2),
+        "cpu_ms_per_frame_mean": round(sum(r["cpu_ms_per_frame"] for r in rows) / len(rows), 2),
+        "pen_ratio_max": max((r["pen_ratio"] for r in rows if r["pen_ratio"] is not None), default=None),
+        "deep_frames_ratio_max": max((r["deep_frames_ratio"] for r in rows if r["deep_frames_ratio"] is not None), default=None),
+        "judge_pairs_pen_ratio_max": max((r["judge_pairs_pen_ratio"] for r in rows if r["judge_pairs_pen_ratio"] is not None), default=None),
+        "judge_pairs_deep_frames_ratio_max": max((r["judge_pairs_deep_frames_ratio"] for r in rows
+                                                  if r["judge_pairs_deep_frames_ratio"] is not None), default=None),
+        "jerk_ratio_vs_before_max": max((r["jerk_ratio_vs_before"] for r in rows if r["jerk_ratio_vs_before"] is not None), default=None),
+        "torch_threads": torch.get_num_threads(),
+        "commit": _commit(),
+    }  # fmt: skip
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"summary": summary, "results": rows}, indent=1))
+    return summary
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--clips", nargs="*", default=list(DEFAULT_CLIPS))
@@ -155,22 +175,8 @@ def main() -> None:
                   f"{a['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% | contact cm {b['contact_distance_mean_cm_at_180']} -> "
                   f"{a['contact_distance_mean_cm_at_180']} (hand-part kept {row['contacts_kept_hand_to_part']}) | jerk x{row['jerk_ratio_vs_before']} (vs source "
                   f"x{row['jerk_ratio_vs_source']})", flush=True)  # fmt: skip
-    summary = {
-        "rows": len(rows),
-        "ms_per_frame_mean": round(sum(r["ms_per_frame"] for r in rows) / len(rows), 2),
-        "cpu_ms_per_frame_mean": round(sum(r["cpu_ms_per_frame"] for r in rows) / len(rows), 2),
-        "pen_ratio_max": max((r["pen_ratio"] for r in rows if r["pen_ratio"] is not None), default=None),
-        "deep_frames_ratio_max": max((r["deep_frames_ratio"] for r in rows if r["deep_frames_ratio"] is not None), default=None),
-        "judge_pairs_pen_ratio_max": max((r["judge_pairs_pen_ratio"] for r in rows if r["judge_pairs_pen_ratio"] is not None), default=None),
-        "judge_pairs_deep_frames_ratio_max": max((r["judge_pairs_deep_frames_ratio"] for r in rows
-                                                  if r["judge_pairs_deep_frames_ratio"] is not None), default=None),
-        "jerk_ratio_vs_before_max": max((r["jerk_ratio_vs_before"] for r in rows if r["jerk_ratio_vs_before"] is not None), default=None),
-        "torch_threads": torch.get_num_threads(),
-        "commit": _commit(),
-    }  # fmt: skip
-    print(json.dumps(summary))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"summary": summary, "results": rows}, indent=1))
+            _write(rows, args.out)
+    print(json.dumps(_write(rows, args.out)))
 
 
 if __name__ == "__main__":
