@@ -157,25 +157,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--clips", nargs="*", default=list(DEFAULT_CLIPS))
     ap.add_argument("--bodies", nargs="*", default=list(DEFAULT_BODIES))
+    ap.add_argument("--pairs", nargs="*", default=None, help="clip:body pairs, run in this order (instead of clips x bodies)")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/collisions_benchmark.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
-    for body in args.bodies:
-        for clip in args.clips:
-            row = bench_one(clip, body, args.frames, args.fps)
-            rows.append(row)
-            b, a = row["before"], row["after"]
-            print(f"{clip} {body}: {row['ms_per_frame']:.1f} ms/frame wall, {row['cpu_ms_per_frame']:.1f} CPU | pen %v {b['penetrating_vertices_percent']:.3f} -> "
-                  f"{a['penetrating_vertices_percent']:.3f} | >1cm {b['frames_deeper_than_1cm_percent']:.1f}% -> "
-                  f"{a['frames_deeper_than_1cm_percent']:.1f}% | judge pairs %v {b['judge_pairs_pen_percent']:.3f} -> "
-                  f"{a['judge_pairs_pen_percent']:.3f}, >1cm {b['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% -> "
-                  f"{a['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% | contact cm {b['contact_distance_mean_cm_at_180']} -> "
-                  f"{a['contact_distance_mean_cm_at_180']} (hand-part kept {row['contacts_kept_hand_to_part']}) | jerk x{row['jerk_ratio_vs_before']} (vs source "
-                  f"x{row['jerk_ratio_vs_source']})", flush=True)  # fmt: skip
-            _write(rows, args.out)
+    pairs = [tuple(p.split(":")) for p in args.pairs] if args.pairs else [(c, b) for b in args.bodies for c in args.clips]
+    for clip, body in pairs:
+        row = bench_one(clip, body, args.frames, args.fps)
+        rows.append(row)
+        b, a = row["before"], row["after"]
+        print(f"{clip} {body}: {row['ms_per_frame']:.1f} ms/frame wall, {row['cpu_ms_per_frame']:.1f} CPU | pen %v {b['penetrating_vertices_percent']:.3f} -> "
+              f"{a['penetrating_vertices_percent']:.3f} | >1cm {b['frames_deeper_than_1cm_percent']:.1f}% -> "
+              f"{a['frames_deeper_than_1cm_percent']:.1f}% | judge pairs %v {b['judge_pairs_pen_percent']:.3f} -> "
+              f"{a['judge_pairs_pen_percent']:.3f}, >1cm {b['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% -> "
+              f"{a['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% | contact cm {b['contact_distance_mean_cm_at_180']} -> "
+              f"{a['contact_distance_mean_cm_at_180']} (hand-part kept {row['contacts_kept_hand_to_part']}) | jerk x{row['jerk_ratio_vs_before']} (vs source "
+              f"x{row['jerk_ratio_vs_source']})", flush=True)  # fmt: skip
+        _write(rows, args.out)
     print(json.dumps(_write(rows, args.out)))
 
 
