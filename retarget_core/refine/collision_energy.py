@@ -23,14 +23,18 @@ from torch import Tensor
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.energy.sdf import PartSDF, segment_distance, vertex_clusters
 
-SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "left_arm", "right_arm", "left_leg", "right_leg")
+SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
 
 
-def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float) -> Tensor:
-    """``(P,)`` vertex indices: per rest-pose cell of edge ``cell_m`` (body scale) and part of the limb and head
-    clusters, the vertex nearest the cell's centroid."""
+def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float, segments: list[int] | None = None) -> Tensor:
+    """``(P,)`` vertex indices: per rest-pose cell of edge ``cell_m`` (body scale) and part of the
+    :data:`SENTINEL_CLUSTERS` (or of ``segments`` when given), the vertex nearest the cell's centroid."""
     parts = sdf.parts
-    keep_cluster = torch.tensor([CLUSTERS[c] in SENTINEL_CLUSTERS for c in parts.cluster])
+    if segments is None:
+        keep_cluster = torch.tensor([CLUSTERS[c] in SENTINEL_CLUSTERS for c in parts.cluster])
+    else:
+        keep_cluster = torch.zeros(parts.num_parts, dtype=torch.bool)
+        keep_cluster[segments] = True
     vc = vertex_clusters(rest_vertices, parts.vertex_part, cell_m, max_members=64)
     c_n = vc.part.shape[0]
     counts = torch.bincount(vc.of_vertex, minlength=c_n).to(rest_vertices.dtype)
@@ -62,11 +66,14 @@ class TripleSet:
 
 def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Tensor, frames: Tensor,
                       exempt: Tensor, allowed: Tensor, slack: float | Tensor, clearance: float,
-                      contact_tolerance: float, only_penetrating: bool = False) -> TripleSet:  # fmt: skip
+                      contact_tolerance: float, only_penetrating: bool = False,
+                      contact_weight: float = 1.0) -> TripleSet:  # fmt: skip
     """Triples for point vertices ``points (P,)`` posed ``(Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``
     at clip frames ``frames (Fa,)``: every allowed segment whose grid box, grown by ``slack``, holds the point
     and whose distance is below ``slack`` (m, or ``(P,)`` per point). ``exempt (F, S, 6)``: segment-of-point x cluster pairs in contact
-    per clip frame (their tolerance is ``contact_tolerance``). ``only_penetrating``: keep depths > 0 only."""
+    per clip frame (their tolerance is ``contact_tolerance``, their weight times ``contact_weight``: the hand is
+    brought to the surface by the contact term, the sunk part only nudged out). ``only_penetrating``: keep
+    depths > 0 only."""
     parts = sdf.parts
     part = parts.vertex_part.index_select(0, points)  # (P,)
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
@@ -99,7 +106,7 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
                 continue
             ex = exempt[frames[f_i], part[pt], cluster[j]]
             tol = torch.where(ex, torch.full_like(rest, contact_tolerance), torch.full_like(rest, -clearance))
-            weight = sdf.geodesic_weight[points[pt], j]
+            weight = sdf.geodesic_weight[points[pt], j] * torch.where(ex, contact_weight, 1.0)
             groups.append((j, f_i, pt, tol, weight, rest))
     return TripleSet(groups)
 
