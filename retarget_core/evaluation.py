@@ -312,16 +312,19 @@ def run_evaluation(
 
 
 def source_as_glb(motion: Path, body: str | Path, out: Path, max_frames: int | None, fps: float | None) -> Path:
-    """``motion`` performed by ``body`` (copy retargeting), written as an animated GLB at ``out``."""
+    """``motion`` performed by ``body`` (copy retargeting, placed on the floor by its mesh where the clip's feet
+    are planted, as a studio's file stands on its floor), written as an animated GLB at ``out``."""
     from retarget_core.copy_retarget import copy_retarget
     from retarget_core.io.gltf_write import write_glb
     from retarget_core.pipeline import prepare_source
+    from retarget_core.placement import stand_on_own_feet
 
     src = prepare_source(JobInputs(motion, body, options=RetargetOptions(fps=fps)), max_frames)
     tgt = load_character(body)
-    view = copy_retarget(src.motion, src.mapping, tgt.character.skeleton, tgt.mapping)
+    ch, mapping = tgt.character, tgt.mapping
+    view = stand_on_own_feet(ch, mapping, copy_retarget(src.motion, src.mapping, ch.skeleton, mapping))
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_glb(tgt.character, view, out, clip_name=src.motion.name)
+    write_glb(ch, view, out, clip_name=src.motion.name)
     return out
 
 

@@ -99,8 +99,7 @@ def load_motion(
     fmt, character, motions, notes = _read_any(path, fps)
     motion = _pick_clip(motions, clip, str(path))
     mapping = _map(f"motion {path.name}", motion.skeleton, joint_map_override)
-    # A clip that carries its own skinned mesh keeps the file's floor (what a viewer and the judge see).
-    normalized, report = normalize_motion(motion, mapping, unit, keep_floor=character is not None)
+    normalized, report = normalize_motion(motion, mapping, unit)
     source_character = None
     if character is not None:
         try:

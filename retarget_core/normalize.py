@@ -165,20 +165,12 @@ def rest_is_standing(skeleton: Skeleton, mapping: JointMapping, tolerance: float
     return bool(uprightness(pos, mapping) < tolerance)
 
 
-FILE_FLOOR_TOLERANCE_M = 0.10
-"""A file's own floor (y = 0) is kept unless the feet stand farther than this from it (at 1.80 m): then the clip
-is re-grounded like a bare skeleton and a note says so."""
-
-
 def normalize_motion(
-    motion: Motion, mapping: JointMapping, unit: str | None = None, keep_floor: bool = False
+    motion: Motion, mapping: JointMapping, unit: str | None = None
 ) -> tuple[Motion, NormalizationReport]:
     """The motion in metres, Y up, with a standing rest pose that faces +Z, and the ground at y = 0.
 
     ``unit`` forces a unit (a key of ``UNIT_CANDIDATES``); by default it is guessed from the body's size.
-    ``keep_floor``: the file's y = 0 is the floor (a clip that carries its own skinned mesh: what a viewer, and the
-    judge, see), unless the feet stand farther than :data:`FILE_FLOOR_TOLERANCE_M` from it; otherwise the floor
-    is estimated from the feet (a low percentile of their clearance over the clip).
     The clip is rotated as a whole so that its rest pose faces +Z; the clip's own heading over time is kept.
     """
     report = NormalizationReport()
@@ -232,14 +224,8 @@ def normalize_motion(
         skeleton = skeleton.with_rest(rest_local_r, rest_local_t)
         moved = Motion(skeleton, moved.fps, moved.rotations, moved.translations, moved.name)
 
-    # Ground: where the feet stand when they are down (a low percentile over the clip), or the file's own floor.
+    # Ground: where the feet stand when they are down (a low percentile over the clip).
     ground = estimate_ground(moved, mapping)
-    if keep_floor:
-        scale_180 = 1.80 / max(HEIGHT_PER_CHAIN_LENGTH * body_chain_length(moved.skeleton, mapping), 1e-6)
-        if abs(ground) * scale_180 <= FILE_FLOOR_TOLERANCE_M:
-            ground = 0.0
-        else:
-            report.notes.append(f"the clip's feet stand {ground * 100:.1f} cm from the file's floor: re-grounded")
     translations = moved.translations.clone()
     rest_t = moved.skeleton.rest_translations.clone()
     for j in (j for j, p in enumerate(moved.skeleton.parents) if p < 0):

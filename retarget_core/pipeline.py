@@ -30,7 +30,7 @@ from retarget_core.measure import SourceContactResult, carry_contacts, detect_so
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.normalize import NormalizationReport
 from retarget_core.options import RetargetOptions
-from retarget_core.placement import place_on_floor, planted_frames
+from retarget_core.placement import place_on_floor, planted_frames, stand_on_own_feet
 from retarget_core.refine import RefineContext, refinement_stages, resolve_device
 from retarget_core.resample import resample, select_frames
 from retarget_core.retargeted import Prepared, Retargeted
@@ -130,6 +130,7 @@ def prepare(
         source_view = copy_retarget(
             source.motion, source.mapping, body.character.skeleton, body.mapping, in_place=opts.in_place
         )
+        source_view = stand_on_own_feet(body.character, body.mapping, source_view)
     with clock.stage("contacts"):
         found = detect_source_contacts(body.character, body.mapping, source_view)
         if not opts.stages.enabled("contacts"):

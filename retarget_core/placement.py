@@ -102,3 +102,16 @@ def place_on_floor(character: Character, mapping: JointMapping, motion: Motion, 
 
 
 __all__ = ["floor_shift", "lowest_foot_vertex", "place_on_floor", "planted_frames"]
+
+
+def stand_on_own_feet(character: Character, mapping: JointMapping, motion: Motion) -> Motion:
+    """``motion`` on ``character`` placed on the floor by its own planted feet (the source on its body: a
+    studio's file stands on its floor, which the copy's joint-clearance height only approximates; foot
+    contacts are then read off the motion as it stands)."""
+    from retarget_core.contacts.foot_contact import detect_foot_contacts
+
+    _, gpos = motion.global_transforms()
+    _, rest = character.skeleton.rest_global()
+    feet = detect_foot_contacts(gpos, rest, mapping, character.height, motion.fps)
+    return place_on_floor(character, mapping, motion, planted_frames(feet))
+

@@ -16,7 +16,7 @@ from retarget_core.io.gltf_write import write_glb
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.metrics.feet_acceptance import feet_figures, planted_feet
 from retarget_core.motion import Motion
-from retarget_core.placement import floor_shift, lowest_foot_vertex, place_on_floor, planted_frames
+from retarget_core.placement import floor_shift, lowest_foot_vertex, place_on_floor, planted_frames, stand_on_own_feet
 from retarget_core.resample import resample
 
 CLIPS = {"007_01": 600, "001_08": 600}  # clip -> source frames used (60 fps, resampled to 30)
@@ -39,6 +39,8 @@ def sources(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict
         bvh = load_motion(shared_data / "motions" / "cmu" / f"{clip}.bvh")
         bvh.motion = resample(bvh.motion.slice(0, frames), 30.0)
         on_average = copy_retarget(bvh.motion, bvh.mapping, average.character.skeleton, average.mapping)
+        # A studio's GLB stands on its floor: the copy is placed by its mesh before it is written.
+        on_average = stand_on_own_feet(average.character, average.mapping, on_average)
         path = tmp_path_factory.mktemp("src") / f"{clip}.glb"
         write_glb(average.character, on_average, path, clip_name=clip)
         out[clip] = {"bvh": bvh, "glb": load_motion(path)}
@@ -46,9 +48,11 @@ def sources(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict
 
 
 def _source_view(src: LoadedMotion) -> tuple[LoadedCharacter, Motion]:
+    """The source on its own body as the pipeline makes it (and as the file stands)."""
     body = src.source_character
     assert body is not None
-    return body, copy_retarget(src.motion, src.mapping, body.character.skeleton, body.mapping)
+    view = copy_retarget(src.motion, src.mapping, body.character.skeleton, body.mapping)
+    return body, stand_on_own_feet(body.character, body.mapping, view)
 
 
 @pytest.mark.parametrize("clip", list(CLIPS))
