@@ -20,15 +20,20 @@ from retarget_core.model.features import from_6d, to_6d
 from retarget_core.model.network import NetworkConfig, RecurrentRetargeter, load_network
 from retarget_core.model.train_recurrent import TrainConfig, train
 from retarget_core.refine.context import RefineContext
+from retarget_core.retargeted import Prepared
 
 FRAMES = 45
 
 
 @pytest.fixture(scope="module")
-def ctx(samples: Path) -> RefineContext:
+def prepared(samples: Path) -> Prepared:
     torch.set_num_threads(1)
-    prep = prepared_case(samples / "motions" / "007_03.bvh", samples / "characters" / "mh_male_bulky.glb", FRAMES)
-    return context_from_prepared(prep)
+    return prepared_case(samples / "motions" / "007_03.bvh", samples / "characters" / "mh_male_bulky.glb", FRAMES)
+
+
+@pytest.fixture(scope="module")
+def ctx(prepared: Prepared) -> RefineContext:
+    return context_from_prepared(prepared)
 
 
 def test_6d_round_trip() -> None:
@@ -92,3 +97,14 @@ def test_eso_lowers_the_energy_on_a_built_case(ctx: RefineContext, tmp_path: Pat
     assert rep["kept"]
     start, _, _, _ = inference.run_network(model, inputs)
     assert bool(((result.rotations - start).abs().amax(dim=(1, 2)) > 1e-6).any())
+
+
+def test_pipeline_runs_recurrent_and_eso_when_switched_on(prepared: Prepared) -> None:
+    from retarget_core import pipeline
+    from retarget_core.options import RetargetOptions
+
+    opts = RetargetOptions(frame_end=FRAMES, eso_iterations=6, stages={"recurrent": True, "eso": True})
+    result = pipeline.refine(prepared, options=opts)
+    assert result.stages_run[-2:] == ["recurrent", "eso"] or {"recurrent", "eso"} <= set(result.stages_run)
+    assert result.stage_reports["eso"]["iterations"] == 6
+    assert result.after.num_frames == prepared.before.num_frames
