@@ -40,7 +40,12 @@ def main() -> None:
     ap.add_argument("--clips", nargs="*", default=list(HELD_OUT_CLIPS))
     ap.add_argument("--bodies", nargs="*", default=["mh_male_bulky", "mh_female_average"])
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "recurrent_eval.json")
+    ap.add_argument("--weights", type=Path, default=None, help="weights to evaluate (default: the shipped ones)")
     args = ap.parse_args()
+    if args.weights is not None:
+        from retarget_core.model import inference
+
+        inference.WEIGHTS_PATH = args.weights
     torch.set_num_threads(1)
     rows = []
     for body in args.bodies:

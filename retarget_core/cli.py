@@ -246,6 +246,8 @@ def train_recurrent(
     bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 6,
     ik_windows: Annotated[int, typer.Option(help="IK contact windows added to the clips")] = 80,
     threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    contact_weight: Annotated[float, typer.Option(help="Weight of the vertex-contact term")] = 1000.0,
+    ik_share: Annotated[float, typer.Option(help="Share of windows drawn from the IK contact windows")] = 0.3,
 ) -> None:
     """Train the geometry-conditioned recurrent retargeter on the energy and write its weights."""
     import logging
@@ -259,7 +261,8 @@ def train_recurrent(
     torch.set_num_threads(threads)
     if not clips.is_dir():
         _fail(f"no clip folder {clips}")
-    cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows)
+    cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
+                      w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
     log.parent.mkdir(parents=True, exist_ok=True)
     summary = train(clips, out, cfg, cache_dir.expanduser(), log)
     console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
