@@ -76,17 +76,17 @@ def _candidate_vertices(body: Character, parts: BodyParts, region: str, side: st
     names, direction = REGIONS[region]
     other = "Right" if side == "Left" else "Left"
     segs = []
-    for n in names:
-        full = n if n in ("Hips", "Spine", "Spine1", "Spine2", "Head") else (other if region == "other_hand" else side) + n
+    for name in names:
+        full = name if name in ("Hips", "Spine", "Spine1", "Spine2", "Head") else (other if region == "other_hand" else side) + name
         if full in parts.names:
             segs.append(parts.index(full))
     mask = torch.zeros(body.num_vertices, dtype=torch.bool)
     for s in segs:
         mask |= parts.vertex_part == s
     if direction is not None:
-        n = body.vertex_normals()
+        normals = body.vertex_normals()
         axis = torch.tensor([0.0, 0.0, 1.0]) if direction == "front" else torch.tensor([1.0 if side == "Left" else -1.0, 0.0, 0.0])
-        mask &= (n @ axis) > NORMAL_MIN_DOT
+        mask &= (normals @ axis) > NORMAL_MIN_DOT
     return torch.nonzero(mask).flatten()
 
 

@@ -37,6 +37,11 @@ class NetworkConfig:
 class RecurrentRetargeter(nn.Module):
     """Encoder-decoder GRU with residual heads (see module doc)."""
 
+    source_mean: Tensor
+    source_std: Tensor
+    target_mean: Tensor
+    target_std: Tensor
+
     def __init__(self, config: NetworkConfig | None = None) -> None:
         super().__init__()
         self.config = config or NetworkConfig()

@@ -185,7 +185,7 @@ def train(
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        last = {"step": step, "body": body, "loss": float(loss.detach()), **terms, "lr": sched.get_last_lr()[0],
+        last = {"step": step, "body": body, "loss": float(loss.detach()), **terms, "lr": float(sched.get_last_lr()[0]),
                 "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
         for k in ("loss", *terms):
             ema[k] = last[k] if k not in ema else 0.98 * ema[k] + 0.02 * last[k]
