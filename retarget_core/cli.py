@@ -1,4 +1,4 @@
-"""Command line: ``retarget run``, ``retarget inspect``, ``retarget bodies``, ``retarget eval``."""
+"""Command line: ``retarget run``, ``retarget inspect``, ``retarget bodies``, ``retarget eval``, ``retarget train``."""
 
 from __future__ import annotations
 
@@ -243,6 +243,52 @@ def evaluate(
         _fail(str(exc))
     print(table.to_markdown())
     console.print(f"wrote {out / 'eval.json'} and {out / 'eval.md'}")
+
+
+train_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Train the learned stages.")
+app.add_typer(train_app, name="train")
+
+
+@train_app.command(name="recurrent")
+def train_recurrent(
+    clips: Annotated[Path, typer.Option(help="Folder of CMU BVH clips (held-out clips are skipped)")] = Path(
+        "../shared/data/motions/cmu"
+    ),
+    out: Annotated[Path, typer.Option("-o", "--out", help="Weights file")] = Path(
+        "retarget_core/data/models/recurrent.pt"
+    ),
+    log: Annotated[Path, typer.Option(help="Losses, one JSON line per step")] = Path("var/train-recurrent.jsonl"),
+    cache_dir: Annotated[Path, typer.Option(help="Where the built training set is cached")] = Path(
+        "~/.cache/retarget/recurrent"
+    ),
+    steps: Annotated[int, typer.Option(help="Optimiser steps")] = 1500,
+    minutes: Annotated[float, typer.Option(help="Stop after this many minutes of training")] = 30.0,
+    seed: Annotated[int, typer.Option(help="Seed of bodies, windows and weights")] = 0,
+    batch: Annotated[int, typer.Option(help="Windows per step")] = 8,
+    bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 6,
+    ik_windows: Annotated[int, typer.Option(help="IK contact windows added to the clips")] = 80,
+    threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    contact_weight: Annotated[float, typer.Option(help="Weight of the vertex-contact term")] = 1000.0,
+    ik_share: Annotated[float, typer.Option(help="Share of windows drawn from the IK contact windows")] = 0.3,
+) -> None:
+    """Train the geometry-conditioned recurrent retargeter on the energy and write its weights."""
+    import logging
+
+    import torch
+
+    from retarget_core.model.train_recurrent import TrainConfig, train
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
+    torch.set_num_threads(threads)
+    if not clips.is_dir():
+        _fail(f"no clip folder {clips}")
+    cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
+                      w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
+    log.parent.mkdir(parents=True, exist_ok=True)
+    summary = train(clips, out, cfg, cache_dir.expanduser(), log)
+    console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
+                  f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.4f}")
 
 
 def _progress() -> Progress:

@@ -42,9 +42,11 @@ METHODS: dict[str, tuple[str, ...]] = {
     "collisions": ("collisions",),
     "foot_lock": ("foot_lock",),
     "collisions+foot_lock": ("collisions", "foot_lock"),
-    "full": tuple(n for n in REFINEMENT_STAGE_NAMES if stage_info(n).available),
+    "recurrent+eso": ("recurrent", "eso"),
+    "recurrent+eso+collisions+foot_lock": ("recurrent", "eso", "collisions", "foot_lock"),
+    "full": tuple(n for n in REFINEMENT_STAGE_NAMES if stage_info(n).available and stage_info(n).default),
 }
-"""Method name -> the refinement stages it runs (``full``: every stage available in this version)."""
+"""Method name -> the refinement stages it runs (``full``: the default chain, what a job runs unless told)."""
 
 
 def method_options(method: str, fps: float | None) -> RetargetOptions:

@@ -1,0 +1,76 @@
+"""Running the shipped network on one job: features from the refinement context, the network's output as a
+motion, and the pieces ESO needs (encoder states, target embedding)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from retarget_core.model.features import (
+    TargetRig,
+    apply_residual,
+    source_canonical_positions,
+    source_features,
+    target_rig,
+)
+from retarget_core.model.network import RecurrentRetargeter, load_network
+from retarget_core.motion import Motion
+from retarget_core.refine.context import RefineContext
+
+WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "recurrent.pt"
+
+
+@lru_cache(maxsize=4)
+def shipped_network(device: str = "cpu", path: str | None = None) -> RecurrentRetargeter:
+    """The shipped weights (or those at ``path``) on ``device``, loaded once per process."""
+    model, _ = load_network(path or WEIGHTS_PATH, device)
+    return model
+
+
+@dataclass
+class NetworkInputs:
+    """Inputs of one clip on one target: features ``(1, F, SOURCE_DIM)``, heading ``(1, F, 4)``, the copy
+    ``(1, F, J, 4|3)``, the target code ``(1, TARGET_DIM)`` and the rig."""
+
+    rig: TargetRig
+    features: Tensor
+    heading: Tensor
+    copy_rot: Tensor
+    copy_trans: Tensor
+    code: Tensor
+
+
+def network_inputs(ctx: RefineContext, base: Motion | None = None) -> NetworkInputs:
+    """Inputs from a refinement context; ``base`` is the motion the residual is added to (default: the copy)."""
+    base = base or ctx.before
+    rig = target_rig(ctx.target.skeleton, ctx.target_mapping, ctx.target.vertices, ctx.parts)
+    sv = ctx.source_view
+    src_pos = source_canonical_positions(sv.skeleton, ctx.source_mapping, sv.rotations, sv.translations)
+    copy_rot = base.rotations.float()[None].to(ctx.device)
+    copy_trans = base.translations.float()[None].to(ctx.device)
+    feats, head = source_features(rig, copy_rot, copy_trans, src_pos.float()[None].to(ctx.device), ctx.source_body.height)
+    return NetworkInputs(rig, feats, head, copy_rot, copy_trans, rig.code[None].to(ctx.device))
+
+
+def decode_motion(model: RecurrentRetargeter, inputs: NetworkInputs, states: Tensor, embedding: Tensor) -> tuple[Tensor, Tensor]:
+    """Local rotations ``(F, J, 4)`` and translations ``(F, J, 3)`` decoded from encoder states ``(1, F, H)``."""
+    rot6, root_offset = model.decode(states, embedding)
+    r, t = apply_residual(inputs.rig, inputs.copy_rot, inputs.copy_trans, inputs.heading, rot6, root_offset)
+    return r[0], t[0]
+
+
+def run_network(model: RecurrentRetargeter, inputs: NetworkInputs) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The network's output ``(F, J, 4)``, ``(F, J, 3)``, its encoder states ``(1, F, H)`` and the target
+    embedding ``(1, E)`` (no gradients)."""
+    with torch.no_grad():
+        states = model.encode(inputs.features)
+        emb = model.embed(inputs.code)
+        r, t = decode_motion(model, inputs, states, emb)
+    return r, t, states, emb
+
+
+__all__ = ["WEIGHTS_PATH", "NetworkInputs", "decode_motion", "network_inputs", "run_network", "shipped_network"]
