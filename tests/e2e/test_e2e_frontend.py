@@ -362,6 +362,27 @@ def test_share_link_opens_the_review_without_leaking_the_key(new_page: Any, form
     assert other.evaluate("window.__viewer.jobId") == form_job.job_id
 
 
+def test_read_only_review_link_opens_without_a_key(new_page: Any, form_job: FormJob, tmp_path: Path) -> None:
+    """"Share read-only link" makes a review link; a browser with no key opens #/review/<token> and gets the
+    review and its downloads (and no way to make more links)."""
+    page = open_review(new_page, form_job)
+    page.click("[data-act=readonly]")
+    page.wait_for_function("document.querySelector('.share-note').dataset.readonly === 'true'")
+    url = page.get_attribute(".share-note", "data-url")
+    assert url.startswith(f"{form_job.base_url}/#/review/") and form_job.key not in url
+    other = new_page(LAPTOP)  # a fresh context: no key in its storage
+    other.goto(url)
+    other.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
+    assert other.evaluate("window.__viewer.jobId") == form_job.job_id
+    assert other.evaluate("localStorage.getItem('retarget.apiKey')") is None
+    assert other.query_selector("[data-act=readonly]") is None and other.query_selector("[data-act=share]") is None
+    with other.expect_download() as dl:
+        other.click('[data-dl="result_glb"]')
+    dl.value.save_as(tmp_path / "r.glb")
+    assert (tmp_path / "r.glb").read_bytes()[:4] == b"glTF"
+    assert not other.errors, other.errors
+
+
 def test_download_buttons_give_the_results(new_page: Any, form_job: FormJob, tmp_path: Path) -> None:
     page = open_review(new_page, form_job)
     with page.expect_download() as dl:
