@@ -15,7 +15,7 @@ import time
 
 from sqlalchemy import update
 
-from api.db import session_scope, utcnow
+from api.db import session_scope, utcnow, write_lock
 from api.models import Job
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ class SentMarker:
                 return
             now = utcnow()
             try:
-                with session_scope(self.url) as s:
+                with write_lock(self.url), session_scope(self.url) as s:
                     for job_id, attempt in runs:
                         s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt,
                                                     Job.sent_at.is_(None)).values(sent_at=now))

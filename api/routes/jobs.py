@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.callbacks import CallbackRefused, check_url
-from api.db import session_scope
+from api.db import session_scope, write_lock
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
@@ -131,6 +131,8 @@ def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, i
             job = new_job(s, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
                           body.options, body.callback_url, body.queue)
             idempotency.remember(s, key.id, idem, scope, fp, job.id)
+            with write_lock(url):
+                s.commit()
     except IntegrityError:
         if not idem:
             raise
