@@ -184,3 +184,14 @@ def test_queued_job_on_a_queue_no_worker_serves_says_so(api_env: ApiEnv) -> None
     job = api_env.client.post("/v1/jobs", json={"motion_id": m, "target_character_id": c, "queue": "gpu"},
                               headers=h).json()
     assert job["note"] and "'gpu'" in job["note"]
+
+
+def test_nul_characters_are_a_422_not_a_server_error(api_env: ApiEnv) -> None:
+    h = api_env.key()
+    r = api_env.client.post("/v1/jobs", json={"motion_id": "mot\x00", "target_character_id": "chr_x"}, headers=h)
+    assert r.status_code == 422 and "motion_id" in r.json()["detail"], r.text
+    r = api_env.client.get("/v1/jobs/job%00x", headers=h)
+    assert r.status_code in (404, 422), r.text  # PostgreSQL refuses NUL in text: a 422, never a 500
+    r = api_env.client.post("/v1/batches", json={"name": "a\x00b", "motion_ids": ["m"], "target_character_ids": ["c"]},
+                            headers=h)
+    assert r.status_code == 422, r.text

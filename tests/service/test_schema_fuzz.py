@@ -22,7 +22,7 @@ from schemathesis.specs.openapi.checks import (  # noqa: E402
 
 pytestmark = pytest.mark.service
 
-EXAMPLES = int(os.environ.get("RETARGET_FUZZ_EXAMPLES", "10"))
+EXAMPLES = int(os.environ.get("RETARGET_FUZZ_EXAMPLES", "25"))
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
 
 
