@@ -10,6 +10,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -67,6 +68,13 @@ async def validation_error(_: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": _sentence(errors), "errors": errors}, status_code=422)
 
 
+async def data_error(_: Request, exc: Exception) -> JSONResponse:
+    """422 for a value the database refuses to store or compare (a NUL character in a text, for example): the
+    request's fault, not the server's."""
+    return JSONResponse({"detail": "a value in the request cannot be used (for example a NUL character in a text "
+                                   "or a name); remove it and try again"}, status_code=422)
+
+
 def add_v1_fallback(app: FastAPI) -> None:
     """Unknown paths under /v1 answer JSON 404, and known paths with another method JSON 405 (instead of the
     front end's page)."""
@@ -118,6 +126,7 @@ def true_openapi(app: FastAPI) -> dict[str, Any]:
 def install(app: FastAPI) -> None:
     """Wire all of the above into ``app`` (after its routers, before the front end is mounted)."""
     app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_exception_handler(DataError, data_error)
     add_v1_fallback(app)
     app.openapi = lambda: true_openapi(app)  # type: ignore[method-assign]
     app.add_middleware(SecurityHeaders)

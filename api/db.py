@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -41,6 +41,24 @@ def configure_pool(size: int, max_overflow: int, timeout_seconds: float) -> None
     """Set the pool of engines made from now on in this process (call before the first query)."""
     global _POOL
     _POOL = PoolConfig(size, max_overflow, timeout_seconds)
+
+
+_WRITE_LOCKS: dict[str, threading.Lock] = {}
+
+
+def write_lock(url: str) -> AbstractContextManager[Any]:
+    """For SQLite, a lock the writing threads of this process take in turn around a commit; a no-op elsewhere.
+
+    SQLite has one write lock per file, and a thread that finds it taken sleeps in SQLite's busy handler in
+    growing steps (up to 100 ms each), so under many concurrent writers the unlucky ones waited seconds. Taking
+    turns in the process leaves SQLite's handler only the other processes to wait for."""
+    if not normalise_database_url(url).startswith("sqlite"):
+        return nullcontext()
+    lock = _WRITE_LOCKS.get(url)
+    if lock is None:
+        with _LOCK:
+            lock = _WRITE_LOCKS.setdefault(url, threading.Lock())
+    return lock
 
 
 def utcnow() -> datetime:

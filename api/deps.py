@@ -22,7 +22,9 @@ api_key_header = APIKeyHeader(
 )
 
 
-def get_settings_dep(request: Request) -> Settings:
+# These are ``async`` on purpose: FastAPI runs a plain ``def`` dependency in the thread pool, so each request
+# would wait for a thread (behind the database work of every other request) just to read app.state.
+async def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings
 
 
@@ -43,11 +45,11 @@ async def get_session(request: Request) -> AsyncIterator[Session]:
         session.close()
 
 
-def get_storage(request: Request) -> Storage:
+async def get_storage(request: Request) -> Storage:
     return request.app.state.storage
 
 
-def get_celery(request: Request) -> Celery:
+async def get_celery(request: Request) -> Celery:
     return request.app.state.celery
 
 

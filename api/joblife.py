@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from api.db import session_scope, updated, utcnow
 from api.models import Job, WebhookDelivery
 from api.queue import TASK_DELIVER_WEBHOOK, TASK_RUN_JOB
+from api.sentmarks import SentMarker
 
 log = logging.getLogger(__name__)
 
@@ -28,11 +29,16 @@ def send_job(celery: Celery, job_id: str, attempt: int, queue: str) -> bool:
         return False
 
 
-def send_and_mark(url: str, celery: Celery, runs: list[tuple[str, int, str]]) -> None:
-    """Send runs (job id, attempt, queue) to the broker, then record ``sent_at`` for those it took. A run whose
-    send failed, or whose process died before recording it, is sent by the reaper within seconds."""
+def send_and_mark(url: str, celery: Celery, runs: list[tuple[str, int, str]], marker: SentMarker | None = None
+                  ) -> None:
+    """Send runs (job id, attempt, queue) to the broker, then record ``sent_at`` for those it took (now, or by
+    ``marker`` in its next batch). A run whose send failed, or whose process died before recording it, is sent
+    by the reaper within seconds."""
     sent = [(job_id, attempt) for job_id, attempt, queue in runs if send_job(celery, job_id, attempt, queue)]
     if not sent:
+        return
+    if marker is not None:
+        marker.add(sent)
         return
     now = utcnow()
     with session_scope(url) as s:

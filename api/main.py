@@ -18,6 +18,7 @@ from api.db import configure_pool
 from api.keycache import KeyCache
 from api.queue import make_celery
 from api.routes import batches, characters, health, jobs, motions, reviews
+from api.sentmarks import SentMarker
 from api.settings import Settings, get_settings
 from api.storage import Storage
 
@@ -53,9 +54,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     configure_pool(settings.db_pool_size, settings.db_max_overflow, settings.db_pool_timeout_seconds)
 
     @asynccontextmanager
-    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
+        marker = None
+        if settings.sent_mark_interval_seconds > 0:
+            marker = app.state.sent_marker = SentMarker(settings.resolved_database_url,
+                                                         settings.sent_mark_interval_seconds)
         yield
+        if marker is not None:
+            marker.stop()
 
     app = FastAPI(
         lifespan=lifespan,

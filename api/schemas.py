@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field
 
@@ -24,6 +24,10 @@ _INSPECT_EXAMPLE: dict[str, Any] = {
     "warnings": [],
 }
 
+
+# An asset id as the API makes them (``mot_...``, ``chr_...``, ``builtin:<preset>``): a request naming anything
+# else is a 422 at once, not a database lookup of arbitrary text.
+ResourceId = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_:.-]+$")]
 
 class ErrorOut(BaseModel):
     """Every error: a sentence a person can act on."""
@@ -117,9 +121,9 @@ class JobCreate(BaseModel):
         }
     )
 
-    motion_id: str = Field(description="A motion id (POST /v1/motions)")
-    target_character_id: str = Field(description="A character id, uploaded or built-in (builtin:<preset>)")
-    source_character_id: str | None = Field(
+    motion_id: ResourceId = Field(description="A motion id (POST /v1/motions)")
+    target_character_id: ResourceId = Field(description="A character id, uploaded or built-in (builtin:<preset>)")
+    source_character_id: ResourceId | None = Field(
         default=None, description="The body the motion was performed by; default: the motion's own mesh, or a "
         "built-in body fitted to its bone lengths"
     )
@@ -145,9 +149,9 @@ class BatchCreate(BaseModel):
     )
 
     name: str | None = Field(default=None, max_length=300)
-    motion_ids: list[str] = Field(min_length=1)
-    target_character_ids: list[str] = Field(min_length=1)
-    source_character_id: str | None = None
+    motion_ids: list[ResourceId] = Field(min_length=1)
+    target_character_ids: list[ResourceId] = Field(min_length=1)
+    source_character_id: ResourceId | None = None
     options: RetargetOptions = Field(default_factory=RetargetOptions)
     callback_url: AnyHttpUrl | None = None
     queue: Literal["cpu", "gpu"] | None = None

@@ -108,6 +108,10 @@ class Settings(BaseSettings):
         default=15.0, gt=0,
         description="A redelivered job whose running attempt has been silent this long is run again at once",
     )
+    sent_mark_interval_seconds: float = Field(
+        default=0.05, ge=0, description="An API process records sent_at of the jobs it sent in batches this often "
+        "(one write for many submissions); 0: at once, in the request"
+    )
     idempotency_ttl_seconds: float = Field(default=86400.0, gt=0, description="How long an Idempotency-Key is kept")
     max_idempotency_key_length: int = Field(default=200, ge=8, description="Longest Idempotency-Key header")
 

@@ -8,7 +8,8 @@ machine with the API.
 
 For every database and every level it prints p50/p95/p99 latency, requests/s and errors:
 - ``poll``: N clients calling GET /v1/jobs/{id} as fast as they can;
-- ``submit``: N clients calling POST /v1/jobs as fast as they can;
+- ``submit``: N clients calling POST /v1/jobs as fast as they can, each with its own key (the default
+  per-key quota of queued jobs applies; nothing runs them, so a key's queue only grows);
 - ``mixed``: 200 pollers and 64 submitters at once (the target: 0 errors, p99 under 1 s).
 
     python benchmarks/load_benchmark.py                       # writes benchmarks/results/load.json
@@ -82,9 +83,21 @@ def make_database(kind: str, root: Path) -> tuple[str, Any]:
     return PG_ADMIN.rsplit("/", 1)[0] + f"/{name}", drop
 
 
-def seed(url: str) -> tuple[str, str, str, str]:
-    """A key, a motion, a character and a finished job; returns (key, motion id, character id, job id)."""
+def seed(url: str, submitters: int) -> tuple[str, str, str, str, list[tuple[str, str, str]]]:
+    """A key, a motion, a character and a finished job, and for each submitter its own key with a motion and a
+    character (a client per key: the default per-key quota of queued jobs holds); returns (key, motion id,
+    character id, job id, [(key, motion id, character id) per submitter])."""
+    clients = []
     with session_scope(url) as s:
+        for i in range(submitters):
+            row, plain = create_key(s, f"submitter-{i}")
+            s.add_all([
+                Asset(id=f"mot_load{i}", kind="motion", owner_id=row.id, name="walk", filename="walk.bvh",
+                      format="bvh", sha256="a" * 64, size_bytes=1000,
+                      info={"frames": 120, "fps": 30.0, "duration_s": 4.0}),
+                Asset(id=f"chr_load{i}", kind="character", owner_id=row.id, name="body", filename="body.glb",
+                      format="glb", sha256="b" * 64, size_bytes=1000, info={"vertices": 10000})])
+            clients.append((plain, f"mot_load{i}", f"chr_load{i}"))
         key_row, key = create_key(s, "load")
         motion = Asset(id="mot_load", kind="motion", owner_id=key_row.id, name="walk", filename="walk.bvh",
                        format="bvh", sha256="a" * 64, size_bytes=1000,
@@ -98,7 +111,7 @@ def seed(url: str) -> tuple[str, str, str, str]:
                   progress=1.0, outputs={"result.glb": "jobs/x/result.glb"})
         s.add(job)
         s.flush()
-        return key, motion.id, character.id, job.id
+        return key, motion.id, character.id, job.id, clients
 
 
 class Client:
@@ -174,13 +187,17 @@ def summary(samples: list[float], errors: list[str], duration: float, clients: i
             "requests_per_s": round(len(ms) / duration, 1), "errors": len(errors), "error_kinds": kinds}
 
 
-async def run_level(port: int, groups: dict[str, tuple[int, bytes, int]], duration: float) -> dict[str, Any]:
-    """Run every group (name -> (clients, request, expected status)) at once for ``duration`` seconds."""
+Requests = bytes | list[bytes]  # one request for every client, or one per client (cycled)
+
+
+async def run_level(port: int, groups: dict[str, tuple[int, Requests, int]], duration: float) -> dict[str, Any]:
+    """Run every group (name -> (clients, request(s), expected status)) at once for ``duration`` seconds."""
     end = time.perf_counter() + duration
     samples: dict[str, list[float]] = {name: [] for name in groups}
     errors: dict[str, list[str]] = {name: [] for name in groups}
-    tasks = [asyncio.create_task(client_loop(port, raw, ok, end, samples[name], errors[name]))
-             for name, (n, raw, ok) in groups.items() for _ in range(n)]
+    tasks = [asyncio.create_task(client_loop(port, raw if isinstance(raw, bytes) else raw[i % len(raw)], ok, end,
+                                             samples[name], errors[name]))
+             for name, (n, raw, ok) in groups.items() for i in range(n)]
     await asyncio.gather(*tasks)
     return {name: summary(samples[name], errors[name], duration, groups[name][0]) for name in groups}
 
@@ -189,7 +206,7 @@ def start_api(root: Path, db_url: str, redis_db: int, port: int, processes: int 
     env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k not in ("DATABASE_URL",)}
     env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
                 "RETARGET_API_DATABASE_URL": db_url, "REDIS_URL": f"redis://127.0.0.1:6379/{redis_db}",
-                "RETARGET_API_MAX_ACTIVE_JOBS_PER_KEY": "10000000", "OMP_NUM_THREADS": "1"})
+                "OMP_NUM_THREADS": "1"})
     log = open(root / "api.log", "ab")  # noqa: SIM115
     return subprocess.Popen([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--port", str(port),
                              "--log-level", "warning", "--no-access-log", "--backlog", "4096",
@@ -205,7 +222,7 @@ def bench_database(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         api = None
         try:
             upgrade(url)
-            key, motion, character, job = seed(url)
+            key, _, _, job, clients = seed(url, max([*args.submitters, args.mixed_submitters]))
             dispose_all()
             port = free_port()
             api = start_api(root, url, redis_db, port, args.api_processes)
@@ -217,11 +234,12 @@ def bench_database(kind: str, args: argparse.Namespace) -> dict[str, Any]:
                 except httpx.HTTPError:
                     time.sleep(0.3)
             poll = get_request(f"/v1/jobs/{job}", key)
-            submit = post_request("/v1/jobs", key, {"motion_id": motion, "target_character_id": character,
-                                                    "options": {"frame_end": 60}, "queue": "gpu"})
+            submit = [post_request("/v1/jobs", k, {"motion_id": m, "target_character_id": c,
+                                                   "options": {"frame_end": 60}, "queue": "gpu"})
+                      for k, m, c in clients]
             levels: list[dict[str, Any]] = []
 
-            def run(groups: dict[str, tuple[int, bytes, int]]) -> None:
+            def run(groups: dict[str, tuple[int, Requests, int]]) -> None:
                 asyncio.run(run_level(port, {k: v for k, v in groups.items() if v[0]}, 1.0))  # warm-up
                 result = asyncio.run(run_level(port, {k: v for k, v in groups.items() if v[0]}, args.duration))
                 levels.append(result)

@@ -9,9 +9,11 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.responses import FileResponse
 from sqlalchemy import func, or_, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
+from api import idempotency
 from api.db import session_scope
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.limits import check_storage
@@ -101,12 +103,44 @@ def _check_storage(url: str, owner_id: str, size: int, settings: Settings) -> No
         check_storage(s, owner_id, size, settings)
 
 
-def _insert_asset(url: str, **values: Any) -> AssetOut:
+def replayed_asset(url: str, owner_id: str, idem: str | None, scope: str, fp: str) -> AssetOut | None:
+    """The asset an earlier request with this Idempotency-Key made (None when there was none); 409 when it was
+    deleted since, 422 when the key was used for a different request."""
+    if not idem:
+        return None
     with session_scope(url) as s:
-        asset = Asset(**values)
-        s.add(asset)
-        s.flush()
+        found = idempotency.find(s, owner_id, idem, scope, fp)
+        if found is None:
+            return None
+        asset = s.get(Asset, found)
+        if asset is None or asset.owner_id != owner_id:
+            raise HTTPException(409, f"what the Idempotency-Key {idem[:80]!r} made was deleted since; use a new key")
         return asset_out(asset)
+
+
+def _insert_asset(url: str, idem: tuple[str, str, str] | None = None, **values: Any) -> tuple[AssetOut, bool]:
+    """Insert the asset (and, with ``idem`` = (Idempotency-Key, scope, fingerprint), its record in the same
+    transaction); returns it and whether it is the one a concurrent request with the same key made."""
+    try:
+        with session_scope(url) as s:
+            asset = Asset(**values)
+            s.add(asset)
+            if idem:
+                idempotency.remember(s, values["owner_id"], idem[0], idem[1], idem[2], asset.id)
+            s.flush()
+            return asset_out(asset), False
+    except IntegrityError:
+        earlier = replayed_asset(url, values["owner_id"], *idem) if idem else None
+        if earlier is None:
+            raise
+        return earlier, True
+
+
+def answer_asset(response: Response, out: AssetOut, replayed: bool) -> AssetOut:
+    response.headers["Location"] = out.links["self"]
+    if replayed:
+        response.headers[idempotency.REPLAYED_HEADER] = "true"
+    return out
 
 
 def make_router(kind: AssetKind) -> APIRouter:
@@ -122,7 +156,8 @@ def make_router(kind: AssetKind) -> APIRouter:
         summary=f"Upload a {kind}",
         description=f"Upload a {kind} file ({formats}). The file is streamed to disk under the size cap, its type "
         "is detected from its content, and a worker parses it before it is accepted. The answer says what was "
-        "found (joints, mapping report, frames, fps, height, warnings). Identical files are stored once.",
+        "found (joints, mapping report, frames, fps, height, warnings). Identical files are stored once. With an "
+        "Idempotency-Key header, a repeated upload answers with the asset the first one made.",
         responses={
             400: {"model": ErrorOut, "description": "Malformed request (no file part, empty body)"},
             408: {"model": ErrorOut, "description": "The body stalled or took too long"},
@@ -143,6 +178,7 @@ def make_router(kind: AssetKind) -> APIRouter:
         celery: CeleryDep,
         name: Annotated[str | None, Query(max_length=300, description="Display name")] = None,
         filename: Annotated[str | None, Query(max_length=300, description="File name of a raw-body upload")] = None,
+        idempotency_key: idempotency.IdempotencyKey = None,
     ) -> AssetOut:
         del filename  # read by receive_upload from the query string; declared here for the OpenAPI document
         url = settings.resolved_database_url
@@ -162,6 +198,16 @@ def make_router(kind: AssetKind) -> APIRouter:
         except HTTPException:
             tmp.unlink(missing_ok=True)
             raise
+        scope = f"POST /v1/{coll}"
+        fp = idempotency.fingerprint(received.sha256, received.filename or "", received.fields.get("name") or name or "")
+        try:
+            earlier = await run_in_threadpool(replayed_asset, url, key.id, idempotency_key, scope, fp)
+        except HTTPException:
+            tmp.unlink(missing_ok=True)
+            raise
+        if earlier is not None:
+            tmp.unlink(missing_ok=True)
+            return answer_asset(response, earlier, True)
         label = received.filename or "the upload"
         try:
             fmt = detect_format_bytes(received.head, label)
@@ -192,13 +238,12 @@ def make_router(kind: AssetKind) -> APIRouter:
         elif received.filename:
             info["name"] = Path(received.filename).stem
         display = received.fields.get("name") or name or Path(received.filename or f"{kind}.{fmt}").stem
-        out = await run_in_threadpool(
-            _insert_asset, url,
+        out, replayed = await run_in_threadpool(
+            _insert_asset, url, (idempotency_key, scope, fp) if idempotency_key else None,
             id=new_id(ID_PREFIX[kind]), kind=kind, owner_id=key.id, origin="upload", name=display[:300],
             filename=received.filename, format=fmt, sha256=received.sha256, size_bytes=received.size, info=info,
         )
-        response.headers["Location"] = out.links["self"]
-        return out
+        return answer_asset(response, out, replayed)
 
     @router.get("", response_model=Page[AssetOut], summary=f"List {coll}")
     def list_assets(

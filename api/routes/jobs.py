@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel
 from sqlalchemy import func, select
@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.callbacks import CallbackRefused, check_url
-from api.db import session_scope
+from api.db import session_scope, write_lock
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
@@ -24,6 +24,7 @@ from api.models import ApiKey, Asset, Job, WebhookDelivery, new_id
 from api.pages import MAX_QUERY_INT, page_bounds
 from api.routing import SessionRoute
 from api.schemas import ErrorOut, JobCreate, JobOut, JobStatus, Page
+from api.sentmarks import SentMarker
 from api.serialize import RESULT_FILES, job_out
 from api.settings import Settings
 from api.storage import Storage
@@ -76,10 +77,10 @@ def new_job(session: Session, key: ApiKey, settings: Settings, motion_id: str, t
     return job
 
 
-def dispatch(session: Session, celery: Any, jobs: list[Job], url: str) -> None:
+def dispatch(session: Session, celery: Any, jobs: list[Job], url: str, marker: SentMarker | None = None) -> None:
     """Commit the rows, then send them and record that they were sent."""
     session.commit()
-    send_and_mark(url, celery, [(job.id, job.attempt, job.queue) for job in jobs])
+    send_and_mark(url, celery, [(job.id, job.attempt, job.queue) for job in jobs], marker)
 
 
 def find_job(session: Session, key: ApiKey, job_id: str) -> Job:
@@ -117,8 +118,8 @@ def json_response(model: BaseModel, status_code: int = 200, headers: dict[str, s
                     headers=headers)
 
 
-def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, idem: str | None
-                ) -> tuple[JobOut, bool]:
+def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, idem: str | None,
+                marker: SentMarker | None = None) -> tuple[JobOut, bool]:
     url = settings.resolved_database_url
     scope, fp = "POST /v1/jobs", fingerprint(body.model_dump_json())
     try:
@@ -130,6 +131,8 @@ def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, i
             job = new_job(s, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
                           body.options, body.callback_url, body.queue)
             idempotency.remember(s, key.id, idem, scope, fp, job.id)
+            with write_lock(url):
+                s.commit()
     except IntegrityError:
         if not idem:
             raise
@@ -138,7 +141,7 @@ def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, i
             if existing is None:
                 raise
             return out(s, find_job(s, key, existing), settings), True
-    send_and_mark(url, celery, [(job.id, job.attempt, job.queue)])
+    send_and_mark(url, celery, [(job.id, job.attempt, job.queue)], marker)
     return job_out(job, None, note=note_for(job, settings)), False
 
 
@@ -154,9 +157,10 @@ def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, i
                      "job is over a size limit"},
                429: {"model": ErrorOut, "description": "Over the key's quota of queued and running jobs"}},
 )
-async def create_job(body: JobCreate, key: CurrentKey, settings: SettingsDep, celery: CeleryDep,
+async def create_job(request: Request, body: JobCreate, key: CurrentKey, settings: SettingsDep, celery: CeleryDep,
                      idempotency_key: IdempotencyKey = None) -> Response:
-    job, replayed = await run_in_threadpool(_create_job, settings, celery, key, body, idempotency_key)
+    job, replayed = await run_in_threadpool(_create_job, settings, celery, key, body, idempotency_key,
+                                            getattr(request.app.state, "sent_marker", None))
     headers = {"Location": f"/v1/jobs/{job.id}"}
     if replayed:
         headers[REPLAYED_HEADER] = "true"

@@ -35,6 +35,7 @@ function mount() {
     case 'jobs': cleanup = mountDashboard(page, route); break;
     case 'job':
     case 'review': cleanup = mountReview(page, route.params.id); break;
+    case 'shared': cleanup = mountReview(page, null, { token: route.params.token }); break;
     case 'batch': cleanup = mountBatch(page, route.params.id); break;
     case 'view': cleanup = mountFileView(page); break;
     case 'settings': cleanup = mountSettings(page, { onSaved: () => { window.location.hash = '#/upload'; } }); break;

@@ -5,6 +5,7 @@
  *   #/jobs                   job dashboard (optional ?status=failed)
  *   #/jobs/<id>              a job: live progress, then its review viewer
  *   #/jobs/<id>/review       the review viewer of a job (the URL to share; it never holds the API key)
+ *   #/review/<token>         a read-only review link: the review viewer without an API key (the token is the access)
  *   #/batches/<id>           one batch: its jobs as a motions x characters grid
  *   #/view                   single-file viewer for any GLB (validated in the browser)
  *   #/settings               the API key
@@ -14,6 +15,7 @@
 
 const PATTERNS = [
   ['review', /^\/jobs\/([^/]+)\/review$/, ['id']],
+  ['shared', /^\/review\/([^/]+)$/, ['token']],
   ['job', /^\/jobs\/([^/]+)$/, ['id']],
   ['jobs', /^\/jobs$/, []],
   ['batch', /^\/batches\/([^/]+)$/, ['id']],
@@ -63,4 +65,14 @@ export function batchHash(batchId) {
  */
 export function shareUrl(loc, jobId) {
   return `${loc.origin}${loc.pathname}${reviewHash(jobId)}`;
+}
+
+/**
+ * The absolute URL of a read-only review link (a token made by POST /v1/jobs/<id>/review-links): whoever opens
+ * it sees that job's review and downloads, without an API key.
+ * @param {{origin: string, pathname: string}} loc
+ * @param {string} token
+ */
+export function reviewLinkUrl(loc, token) {
+  return `${loc.origin}${loc.pathname}#/review/${encodeURIComponent(token)}`;
 }

@@ -48,10 +48,37 @@ def test_idempotency_key_makes_one_job(api_env: ApiEnv) -> None:
     assert b1.json()["id"] == b2.json()["id"] and jobs_of(api_env) == 2
 
 
+def test_idempotency_key_on_uploads_and_generated_bodies(api_env: ApiEnv) -> None:
+    from api.queue import TASK_MAKE_BODY
+    from worker.assets import answer
+
+    h = api_env.key()
+    r1 = api_env.client.post("/v1/motions", files={"file": ("walk.bvh", BVH)}, headers={**h, "Idempotency-Key": "u-1"})
+    r2 = api_env.client.post("/v1/motions", files={"file": ("walk.bvh", BVH)}, headers={**h, "Idempotency-Key": "u-1"})
+    assert r1.status_code == r2.status_code == 201 and r1.json()["id"] == r2.json()["id"]
+    assert r2.headers["idempotent-replayed"] == "true" and len(api_env.celery.named("retarget.inspect")) == 1
+    r3 = api_env.client.post("/v1/motions", files={"file": ("run.bvh", BVH + b"\n")},
+                             headers={**h, "Idempotency-Key": "u-1"})
+    assert r3.status_code == 422 and "Idempotency-Key" in r3.json()["detail"]
+
+    def make_body(kwargs: dict[str, Any]) -> None:
+        answer(api_env.settings, kwargs["call_id"], {"sha256": "c" * 64, "size_bytes": 10, "name": "made",
+                                                      "info": {"vertices": 10}, "params": kwargs["params"]})
+
+    api_env.celery.handlers[TASK_MAKE_BODY] = make_body
+    body = {"params": {"height": 1.8}}
+    b1 = api_env.client.post("/v1/characters/builtin", json=body, headers={**h, "Idempotency-Key": "g-1"})
+    b2 = api_env.client.post("/v1/characters/builtin", json=body, headers={**h, "Idempotency-Key": "g-1"})
+    assert b1.status_code == b2.status_code == 201, b1.text
+    assert b1.json()["id"] == b2.json()["id"] and b2.headers["idempotent-replayed"] == "true"
+    assert len(api_env.celery.named(TASK_MAKE_BODY)) == 1
+
+
 def test_jobs_are_sent_and_marked_sent(api_env: ApiEnv) -> None:
     h = api_env.key()
     m, c = assets(api_env, h)
     job = api_env.client.post("/v1/jobs", json={"motion_id": m, "target_character_id": c}, headers=h).json()
+    api_env.client.app.state.sent_marker.flush()  # recorded in batches by the API process's marker thread
     with session_scope(api_env.url) as s:
         assert s.get(Job, job["id"]).sent_at is not None
     api_env.celery.fail = True
@@ -157,3 +184,14 @@ def test_queued_job_on_a_queue_no_worker_serves_says_so(api_env: ApiEnv) -> None
     job = api_env.client.post("/v1/jobs", json={"motion_id": m, "target_character_id": c, "queue": "gpu"},
                               headers=h).json()
     assert job["note"] and "'gpu'" in job["note"]
+
+
+def test_nul_characters_are_a_422_not_a_server_error(api_env: ApiEnv) -> None:
+    h = api_env.key()
+    r = api_env.client.post("/v1/jobs", json={"motion_id": "mot\x00", "target_character_id": "chr_x"}, headers=h)
+    assert r.status_code == 422 and "motion_id" in r.json()["detail"], r.text
+    r = api_env.client.get("/v1/jobs/job%00x", headers=h)
+    assert r.status_code in (404, 422), r.text  # PostgreSQL refuses NUL in text: a 422, never a 500
+    r = api_env.client.post("/v1/batches", json={"name": "a\x00b", "motion_ids": ["m"], "target_character_ids": ["c"]},
+                            headers=h)
+    assert r.status_code == 422, r.text

@@ -1,9 +1,12 @@
 """End to end in a real headless Chromium: upload a shared clip and body through the form, wait for the job on the
 dashboard, review it in the viewer (three views render a moving character, scrubbing locks all three to the same
-frame, charts, keyboard, laptop and wide layouts, share link without the key), and the single-file GLB viewer.
+frame, charts, keyboard, laptop and wide layouts, share link without the key, read-only review link), and the
+single-file GLB viewer.
 
-Runs against the real service (Redis, worker processes, uvicorn serving frontend/dist). Screenshots are kept in
-test-artifacts/e2e/.
+Runs against the real service (Redis, worker processes, uvicorn serving frontend/dist), with its
+Content-Security-Policy in force: every wait_for_function predicate is a function ("() => ..."), since
+Playwright turns a bare expression into an eval in the page, which the policy (rightly) forbids. Screenshots are
+kept in test-artifacts/e2e/.
 """
 
 from __future__ import annotations
@@ -30,6 +33,10 @@ from e2e_helpers import (
     view_pixels,
 )
 from metrics_fixture import CONTACT_FIRST, CONTACT_LAST, PENETRATING, SOURCE_FLAG, metrics_with_series
+from sqlalchemy import update
+
+from api.db import session_scope, utcnow
+from api.models import Job
 
 pytestmark = [pytest.mark.e2e, pytest.mark.service]
 
@@ -204,18 +211,18 @@ def test_keyboard_plays_pauses_and_steps(new_page: Any, form_job: FormJob) -> No
     seek(page, 10)
     page.click("body", position={"x": 5, "y": 300})  # focus the page, not a control
     page.keyboard.press("ArrowRight")
-    page.wait_for_function("window.__viewer.frame === 11")
+    page.wait_for_function("() => window.__viewer.frame === 11")
     page.keyboard.press("ArrowLeft")
     page.keyboard.press("ArrowLeft")
-    page.wait_for_function("window.__viewer.frame === 9")
+    page.wait_for_function("() => window.__viewer.frame === 9")
     page.keyboard.press("Shift+ArrowRight")
-    page.wait_for_function("window.__viewer.frame === 19")
+    page.wait_for_function("() => window.__viewer.frame === 19")
     assert set(view_frames(page).values()) == {19}
     page.keyboard.press("Home")
-    page.wait_for_function("window.__viewer.frame === 0")
+    page.wait_for_function("() => window.__viewer.frame === 0")
     page.keyboard.press("Space")
-    page.wait_for_function("window.__viewer.playing === true")
-    page.wait_for_function("window.__viewer.frame >= 3", timeout=20_000)
+    page.wait_for_function("() => window.__viewer.playing === true")
+    page.wait_for_function("() => window.__viewer.frame >= 3", timeout=20_000)
     for _ in range(5):  # frame-locked while playing: every view on the timeline's frame (one JS turn, atomic)
         locked = page.evaluate(
             "(() => { const f = window.__viewer.frame; return Object.values(window.__viewer.views())"
@@ -224,17 +231,17 @@ def test_keyboard_plays_pauses_and_steps(new_page: Any, form_job: FormJob) -> No
         assert locked
         page.wait_for_timeout(120)
     page.keyboard.press("Space")
-    page.wait_for_function("window.__viewer.playing === false")
+    page.wait_for_function("() => window.__viewer.playing === false")
     stopped = page.evaluate("window.__viewer.frame")
     page.wait_for_timeout(400)
     assert page.evaluate("window.__viewer.frame") == stopped
     page.keyboard.press("End")
-    page.wait_for_function(f"window.__viewer.frame === {FRAME_END - 1}")
+    page.wait_for_function(f"() => window.__viewer.frame === {FRAME_END - 1}")
     # The play button does the same as space.
     page.click("[data-act=play]")
-    page.wait_for_function("window.__viewer.playing === true")
+    page.wait_for_function("() => window.__viewer.playing === true")
     page.click("[data-act=play]")
-    page.wait_for_function("window.__viewer.playing === false")
+    page.wait_for_function("() => window.__viewer.playing === false")
     assert not page.errors, page.errors
 
 
@@ -339,7 +346,7 @@ def test_after_differs_from_before_on_a_real_job(new_page: Any, form_job: FormJo
 def test_share_link_opens_the_review_without_leaking_the_key(new_page: Any, form_job: FormJob) -> None:
     page = open_review(new_page, form_job)
     page.click("[data-act=share]")
-    page.wait_for_function("document.querySelector('.share-note').dataset.url")
+    page.wait_for_function("() => document.querySelector('.share-note').dataset.url")
     url = page.get_attribute(".share-note", "data-url")
     assert url == f"{form_job.base_url}/#/jobs/{form_job.job_id}/review"
     assert form_job.key not in url and form_job.key not in page.url
@@ -360,6 +367,27 @@ def test_share_link_opens_the_review_without_leaking_the_key(new_page: Any, form
     other.goto(url)
     other.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
     assert other.evaluate("window.__viewer.jobId") == form_job.job_id
+
+
+def test_read_only_review_link_opens_without_a_key(new_page: Any, form_job: FormJob, tmp_path: Path) -> None:
+    """"Share read-only link" makes a review link; a browser with no key opens #/review/<token> and gets the
+    review and its downloads (and no way to make more links)."""
+    page = open_review(new_page, form_job)
+    page.click("[data-act=readonly]")
+    page.wait_for_function("() => document.querySelector('.share-note').dataset.readonly === 'true'")
+    url = page.get_attribute(".share-note", "data-url")
+    assert url.startswith(f"{form_job.base_url}/#/review/") and form_job.key not in url
+    other = new_page(LAPTOP)  # a fresh context: no key in its storage
+    other.goto(url)
+    other.wait_for_selector(".review-grid[data-ready=true]", timeout=90_000)
+    assert other.evaluate("window.__viewer.jobId") == form_job.job_id
+    assert other.evaluate("localStorage.getItem('retarget.apiKey')") is None
+    assert other.query_selector("[data-act=readonly]") is None and other.query_selector("[data-act=share]") is None
+    with other.expect_download() as dl:
+        other.click('[data-dl="result_glb"]')
+    dl.value.save_as(tmp_path / "r.glb")
+    assert (tmp_path / "r.glb").read_bytes()[:4] == b"glTF"
+    assert not other.errors, other.errors
 
 
 def test_download_buttons_give_the_results(new_page: Any, form_job: FormJob, tmp_path: Path) -> None:
@@ -495,16 +523,16 @@ def test_single_file_viewer_validates_and_plays(
     assert page.get_attribute(".validation", "data-done") == "valid", page.inner_text(".validation")
     assert page.get_attribute(".validation-summary", "data-errors") == "0"
     page.wait_for_selector('.view[data-view="file"][data-loaded="true"]')
-    page.wait_for_function("window.__fileviewer && window.__fileviewer.timeline.frames > 1")
+    page.wait_for_function("() => window.__fileviewer && window.__fileviewer.timeline.frames > 1")
     assert page.evaluate("window.__fileviewer.timeline.frames") == FRAME_END
     page.keyboard.press("End")
-    page.wait_for_function(f"window.__fileviewer.view.frame === {FRAME_END - 1}")
+    page.wait_for_function(f"() => window.__fileviewer.view.frame === {FRAME_END - 1}")
     page.screenshot(path=str(artifacts / "09-glb-viewer-valid.png"))
     # A damaged file: the validator's errors are listed.
     bad = tmp_path / "broken.glb"
     bad.write_bytes(glb.content[: len(glb.content) // 3])
     page.set_input_files("#glb-file", str(bad))
-    page.wait_for_function("document.querySelector('.validation').dataset.done === 'invalid'", timeout=60_000)
+    page.wait_for_function("() => document.querySelector('.validation').dataset.done === 'invalid'", timeout=60_000)
     assert int(page.get_attribute(".validation-summary", "data-errors")) > 0
     assert page.locator("table.issues tr.sev-error").count() > 0
     page.screenshot(path=str(artifacts / "09-glb-viewer-broken.png"))
@@ -512,7 +540,7 @@ def test_single_file_viewer_validates_and_plays(
 
 
 def test_batch_from_the_form_and_errors_in_words(
-    new_page: Any, form_job: FormJob, shared_data: Path, artifacts: Path
+    e2e_service: Any, new_page: Any, form_job: FormJob, shared_data: Path, artifacts: Path
 ) -> None:
     """Several targets make a batch (already uploaded assets picked from the lists, one more body dropped in); the
     batch page shows the motions x characters grid live; a failed job's error reads as words on the dashboard and
@@ -533,20 +561,31 @@ def test_batch_from_the_form_and_errors_in_words(
     assert page.inner_text("[data-act=submit]") == "Submit batch of 2 jobs"
     page.click("[data-act=submit]")
     page.wait_for_url("**/#/batches/*")
-    page.wait_for_function("document.querySelectorAll('.batch-grid td[data-job]').length === 2")
+    page.wait_for_function("() => document.querySelectorAll('.batch-grid td[data-job]').length === 2")
     page.wait_for_function(
-        "[...document.querySelectorAll('.batch-grid td[data-job]')].every((td) => td.dataset.status === 'succeeded')",
+        "() => [...document.querySelectorAll('.batch-grid td[data-job]')].every((td) => td.dataset.status === 'succeeded')",
         timeout=120_000,
     )
     assert "e2e batch" in page.inner_text(".batch")
     page.screenshot(path=str(artifacts / "10-batch-laptop.png"))
-    # A job that fails on its input: frame range past the end of the clip.
+    # A frame range past the end of the clip is refused at submission, in words.
     r = httpx.post(f"{form_job.base_url}/v1/jobs", headers={"X-API-Key": form_job.key}, json={
         "motion_id": form_job.motion["id"], "target_character_id": form_job.character["id"],
         "options": {"frame_start": form_job.motion["info"]["frames"] + 50},
     })  # fmt: skip
+    assert r.status_code == 422 and "past its end" in r.json()["detail"], r.text
+    # A job that failed on its input in the worker, recorded as a worker records it (on the gpu queue, which no
+    # worker serves here, it waits until then).
+    r = httpx.post(f"{form_job.base_url}/v1/jobs", headers={"X-API-Key": form_job.key}, json={
+        "motion_id": form_job.motion["id"], "target_character_id": form_job.character["id"], "queue": "gpu",
+        "options": {"frame_end": 20},
+    })  # fmt: skip
     assert r.status_code == 202, r.text
     failed = r.json()["id"]
+    with session_scope(e2e_service.database_url) as s:
+        s.execute(update(Job).where(Job.id == failed).values(
+            status="failed", error_kind="input", finished_at=utcnow(),
+            message=f"{form_job.motion['filename']}: the joint mapping found no left hand in the motion"))
     page.goto(f"{form_job.base_url}/#/jobs?status=failed")
     row = f'tr[data-job="{failed}"][data-status="failed"]'
     page.wait_for_selector(row, timeout=60_000)

@@ -1,6 +1,7 @@
 """The ``service`` fixture: real Redis, real worker processes and the API under uvicorn (see service_harness).
 
-The database is a throw-away PostgreSQL database when the server at RETARGET_TEST_PG_ADMIN (default
+Redis is a private redis-server on a free port when the binary is there (the fault tests restart it), else a
+spare database number of the shared one at 127.0.0.1:6379. The database is a throw-away PostgreSQL database when the server at RETARGET_TEST_PG_ADMIN (default
 postgresql://postgres@127.0.0.1:5432/test) answers, as in docker-compose, and a SQLite file otherwise (the
 embedded mode's test covers SQLite end to end). RETARGET_SERVICE_TEST_DB=sqlite|postgresql forces one.
 """
@@ -13,7 +14,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from service_harness import REDIS_HOST, REDIS_PORT, REPO, Service, claim_clean_redis_db, free_port
+from service_harness import REDIS_HOST, REDIS_PORT, REPO, PrivateRedis, Service, claim_clean_redis_db, free_port
 
 from api.db import dispose_all
 from api.migrate import upgrade
@@ -47,9 +48,16 @@ def choose_database(root: Path) -> tuple[str, Callable[[], None] | None]:
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     import redis
 
-    db, _ = claim_clean_redis_db()
-    r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
     root = tmp_path_factory.mktemp("service")
+    private = PrivateRedis(root / "redis") if PrivateRedis.available() else None
+    if private is not None:
+        private.start()
+        redis_url = private.url
+        r = redis.Redis.from_url(redis_url)
+    else:
+        db, _ = claim_clean_redis_db()
+        redis_url = f"redis://{REDIS_HOST}:{REDIS_PORT}/{db}"
+        r = redis.Redis(REDIS_HOST, REDIS_PORT, db=db)
     data_dir, log_dir = root / "data", root / "logs"
     log_dir.mkdir()
     database_url, drop_database = choose_database(root)
@@ -60,7 +68,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         "PYTHONPATH": str(REPO),
         "RETARGET_API_DATA_DIR": str(data_dir),
         "RETARGET_API_DATABASE_URL": database_url,
-        "REDIS_URL": f"redis://{REDIS_HOST}:{REDIS_PORT}/{db}",
+        "REDIS_URL": redis_url,
         "RETARGET_API_MAX_UPLOAD_BYTES": str(32 * 1024 * 1024),
         "RETARGET_API_INSPECT_TIMEOUT_SECONDS": "90",
         "RETARGET_API_HEARTBEAT_INTERVAL_SECONDS": "0.5",
@@ -72,6 +80,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         "OMP_NUM_THREADS": "1",
     })
     svc = Service(f"http://127.0.0.1:{port}", data_dir, database_url, env["REDIS_URL"], env, log_dir)
+    svc.redis_server = private
     try:
         svc.start_worker("io", "io")
         svc.start_worker("cpu", "cpu")
@@ -83,6 +92,9 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     finally:
         svc.stop_all()
         dispose_all()
-        r.flushdb()
+        if private is not None:
+            private.stop()
+        else:
+            r.flushdb()
         if drop_database is not None:
             drop_database()

@@ -1,7 +1,9 @@
 """Generated hostile uploads (no stored blobs): malformed, over-limit and out-of-range BVH and glTF files.
 
-``cases()`` yields (name, kind, file name, bytes, must_fail): ``must_fail`` cases must be refused with a 4xx
-naming the problem; the seeded byte mutations of a valid file may also be accepted (they must never be a 5xx).
+``cases()`` yields (name, kind, file name, bytes, must_fail, expect): ``must_fail`` cases must be refused with a
+4xx naming the problem, and the message must contain ``expect`` (case-insensitive) when it is given, so a case
+is refused by the check it targets (the BVH cases use a valid human skeleton, so none is refused merely for not
+being one); the seeded byte mutations of a valid file may also be accepted (they must never be a 5xx).
 """
 
 from __future__ import annotations
@@ -12,20 +14,57 @@ import random
 import struct
 from collections.abc import Iterator
 
-Case = tuple[str, str, str, bytes, bool]
+Case = tuple[str, str, str, bytes, bool, str | None]
+
+# A CMU-like human skeleton (name, parent, OFFSET in cm): the mapper finds every joint it needs, so a hostile
+# field in it is refused by the check that targets that field, not as "not a human skeleton".
+HUMAN: list[tuple[str, str | None, tuple[float, float, float]]] = [
+    ("Hips", None, (0, 0, 0)), ("LowerBack", "Hips", (0, 2, 0)), ("Spine", "LowerBack", (0, 10, 0)),
+    ("Spine1", "Spine", (0, 10, 0)), ("Neck", "Spine1", (0, 15, 0)), ("Head", "Neck", (0, 8, 0)),
+    ("LeftShoulder", "Spine1", (3, 12, 0)), ("LeftArm", "LeftShoulder", (15, 0, 0)),
+    ("LeftForeArm", "LeftArm", (28, 0, 0)), ("LeftHand", "LeftForeArm", (25, 0, 0)),
+    ("RightShoulder", "Spine1", (-3, 12, 0)), ("RightArm", "RightShoulder", (-15, 0, 0)),
+    ("RightForeArm", "RightArm", (-28, 0, 0)), ("RightHand", "RightForeArm", (-25, 0, 0)),
+    ("LeftUpLeg", "Hips", (9, -5, 0)), ("LeftLeg", "LeftUpLeg", (0, -42, 0)), ("LeftFoot", "LeftLeg", (0, -40, 0)),
+    ("LeftToeBase", "LeftFoot", (0, -5, 12)), ("RightUpLeg", "Hips", (-9, -5, 0)),
+    ("RightLeg", "RightUpLeg", (0, -42, 0)), ("RightFoot", "RightLeg", (0, -40, 0)),
+    ("RightToeBase", "RightFoot", (0, -5, 12)),
+]
+ROOT_CHANNELS = "CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"
 
 
-def bvh(frames: int = 4, frame_time: str = "0.033333", offsets: tuple[str, str] = ("0 10 0", "0 10 0"),
-        rows: list[str] | None = None, declared: str | None = None, channels: str = "Xrotation Yrotation Zrotation",
-        joints: int = 2) -> bytes:
-    """A small BVH: a root with position and rotation channels and a chain of ``joints - 1`` joints."""
-    lines = ["HIERARCHY", "ROOT Hips", "{", "  OFFSET 0 0 0",
-             "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"]
-    for j in range(1, joints):
-        lines += [f"  JOINT J{j}", "  {", f"    OFFSET {offsets[j % 2]}", f"    CHANNELS 3 {channels}"]
-    lines += ["  End Site", "  {", "    OFFSET 0 5 0", "  }"] + ["  }"] * (joints - 1) + ["}"]
-    per = 6 + 3 * (joints - 1)
-    body = rows if rows is not None else [" ".join(["0.0"] * per)] * frames
+def bvh(frames: int = 4, frame_time: str = "0.033333", offsets: dict[str, str] | None = None,
+        rows: list[str] | None = None, declared: str | None = None, channels: str = "Zrotation Xrotation Yrotation",
+        extra_joints: int = 0, zero: bool = False, root_row: str | None = None) -> bytes:
+    """A BVH of the human skeleton above (plus ``extra_joints`` leaf joints on the head): ``offsets`` replaces
+    the OFFSET of named joints, ``zero`` makes every OFFSET (and End Site) 0, ``root_row`` the root's six
+    values in every frame, ``rows`` the whole MOTION body."""
+    offsets = offsets or {}
+    children: dict[str | None, list[str]] = {}
+    for name, parent, _ in HUMAN:
+        children.setdefault(parent, []).append(name)
+    chain = [f"Extra{i}" for i in range(extra_joints)]
+    children.setdefault("Head", []).extend(chain)
+    offset_of = {name: off for name, _, off in HUMAN} | {name: (0, 1, 0) for name in chain}
+    lines = ["HIERARCHY"]
+
+    def emit(name: str, depth: int) -> None:
+        pad = "  " * depth
+        off = "0 0 0" if zero else offsets.get(name, " ".join(f"{v:g}" for v in offset_of[name]))
+        lines.extend([f"{pad}{'ROOT' if depth == 0 else 'JOINT'} {name}", f"{pad}{{", f"{pad}  OFFSET {off}",
+                      f"{pad}  {ROOT_CHANNELS if depth == 0 else 'CHANNELS 3 ' + channels}"])
+        kids = children.get(name, [])
+        for kid in kids:
+            emit(kid, depth + 1)
+        if not kids:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {'0 0 0' if zero else '0 3 0'}",
+                          f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    emit("Hips", 0)
+    per = 6 + 3 * (len(HUMAN) - 1 + extra_joints)
+    rest = " ".join(["0.0"] * (per - 6))
+    body = rows if rows is not None else [f"{root_row or '0 90 0 0 0 0'} {rest}"] * frames
     lines += ["MOTION", f"Frames: {declared if declared is not None else frames}", f"Frame Time: {frame_time}"]
     return ("\n".join(lines + body) + "\n").encode()
 
@@ -45,37 +84,55 @@ def glb(doc: dict[str, object], binary: bytes = b"") -> bytes:
 
 
 def _bvh_cases() -> Iterator[Case]:
-    for ft in ("0", "-1", "1e300", "1e-300", "nan", "inf", "abc", "1e-5", "20", "", "0x10"):
-        yield f"bvh frame time {ft!r}", "motion", "ft.bvh", bvh(frame_time=ft), True
-    for decl in ("0", "-1", "99999999999999999999", "1e3", "12", "x", "3.5"):
-        yield f"bvh frames {decl!r}", "motion", "fr.bvh", bvh(declared=decl), True
-    yield "bvh zero offsets", "motion", "zero.bvh", bvh(offsets=("0 0 0", "0 0 0")), True
+    per = 6 + 3 * (len(HUMAN) - 1)
+
+    def row(value: str, column: int = 5) -> str:
+        vals = ["0"] * per
+        vals[column] = value
+        return " ".join(vals)
+
+    for ft, why in (("0", "positive number"), ("-1", "positive number"), ("1e300", "outside"), ("1e-300", "outside"),
+                    ("nan", "positive number"), ("inf", "positive number"), ("abc", "not a number"),
+                    ("1e-5", "outside"), ("20", "outside"), ("", "frame time"), ("0x10", "not a number")):
+        yield f"bvh frame time {ft!r}", "motion", "ft.bvh", bvh(frame_time=ft), True, why
+    for decl, why in (("0", "0 frames"), ("-1", "whole number"), ("99999999999999999999", "limit"),
+                      ("1e3", "whole number"), ("12", "declares 12 frames"), ("x", "whole number"),
+                      ("3.5", "whole number")):
+        yield f"bvh frames {decl!r}", "motion", "fr.bvh", bvh(declared=decl), True, why
+    yield "bvh zero offsets", "motion", "zero.bvh", bvh(zero=True), True, "no size"
     for big in ("1e30", "1e7", "-1e9"):
-        yield f"bvh offset {big}", "motion", "off.bvh", bvh(offsets=(f"0 {big} 0", "0 1 0")), True
-        yield f"bvh root position {big}", "motion", "pos.bvh", bvh(rows=[f"0 {big} 0 " + " ".join(["0"] * 6)] * 4), True
-    for bad in ("nan", "inf", "-inf", "1e999", "zz", "1,5"):
-        yield f"bvh value {bad}", "motion", "v.bvh", bvh(rows=[f"0 0 0 0 0 {bad} 0 0 0"] * 4), True
-    yield "bvh short rows", "motion", "short.bvh", bvh(rows=["0 0 0"] * 4), True
-    yield "bvh long rows", "motion", "long.bvh", bvh(rows=[" ".join(["0"] * 30)] * 4), True
-    yield "bvh missing rows", "motion", "miss.bvh", bvh(rows=[" ".join(["0"] * 9)] * 2), True
-    yield "bvh unknown channel", "motion", "ch.bvh", bvh(channels="Xrotation Yrotation Wrotation"), True
-    yield "bvh too many joints", "motion", "joints.bvh", bvh(joints=1002, frames=1), True
-    yield "bvh budget: 1000 joints x 8000 frames", "motion", "big.bvh", bvh(joints=1000, declared="8000", rows=[]), True
-    yield "bvh no motion", "motion", "nomo.bvh", b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n}\n", True
-    yield "bvh empty hierarchy", "motion", "empty.bvh", b"HIERARCHY\nMOTION\nFrames: 1\nFrame Time: 0.1\n0\n", True
-    yield "bvh long line", "motion", "line.bvh", b"HIERARCHY\nROOT " + b"A" * 70000 + b"\n", True
+        yield (f"bvh offset {big}", "motion", "off.bvh", bvh(offsets={"LeftForeArm": f"{big} 0 0"}), True,
+               "offset of")
+        yield (f"bvh root position {big}", "motion", "pos.bvh", bvh(root_row=f"0 {big} 0 0 0 0"), True,
+               "over the limit")
+    for bad, why in (("nan", "nan"), ("inf", "inf"), ("-inf", "inf"), ("1e999", "inf"), ("zz", "not a number"),
+                     ("1,5", "not a number")):
+        yield f"bvh value {bad}", "motion", "v.bvh", bvh(rows=[row(bad)] * 4), True, why
+    yield "bvh short rows", "motion", "short.bvh", bvh(rows=["0 0 0"] * 4), True, "has 3 values"
+    yield "bvh long rows", "motion", "long.bvh", bvh(rows=[" ".join(["0"] * (per + 3))] * 4), True, "values"
+    yield "bvh missing rows", "motion", "miss.bvh", bvh(rows=[row("0")] * 2), True, "holds 2"
+    yield ("bvh unknown channel", "motion", "ch.bvh", bvh(channels="Xrotation Yrotation Wrotation"), True,
+           "unsupported channel")
+    yield "bvh too many joints", "motion", "joints.bvh", bvh(extra_joints=1000, frames=1), True, "joints"
+    yield ("bvh budget: about 1000 joints x 8000 frames", "motion", "big.bvh",
+           bvh(extra_joints=480, declared="8000", rows=[]), True, "budget")
+    yield "bvh no motion", "motion", "nomo.bvh", b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n}\n", True, "MOTION"
+    yield ("bvh empty hierarchy", "motion", "empty.bvh", b"HIERARCHY\nMOTION\nFrames: 1\nFrame Time: 0.1\n0\n",
+           True, "ROOT")
+    yield "bvh long line", "motion", "line.bvh", b"HIERARCHY\nROOT " + b"A" * 70000 + b"\n", True, "longer than"
     valid = bvh(frames=6)
-    for cut in range(20, len(valid) - 10, max(1, (len(valid) - 30) // 120)):
-        yield f"bvh truncated at {cut}", "motion", "cut.bvh", valid[:cut], True
+    step = max(1, (len(valid) - 30) // 120)
+    for cut in range(20, len(valid) - 10, step):
+        yield f"bvh truncated at {cut}", "motion", "cut.bvh", valid[:cut], True, None
     rng = random.Random(11)
     for k in range(120):
         data = bytearray(valid)
         for _ in range(rng.randint(1, 6)):
             data[rng.randrange(len(data))] = rng.choice(b"{}\n -.0123456789eEXYZabc\x00\xff")
-        yield f"bvh mutation {k}", "motion", "mut.bvh", bytes(data), False
+        yield f"bvh mutation {k}", "motion", "mut.bvh", bytes(data), False, None
 
 
-def _gltf_cases() -> Iterator[Case]:
+def _gltf_cases() -> Iterator[tuple[str, str, str, bytes, bool]]:
     big = 12_000_000
     yield "accessor without data, huge", "character", "a.gltf", gltf({"accessors": [
         {"componentType": 5126, "type": "VEC4", "count": big}], "animations": [
@@ -138,5 +195,6 @@ def _gltf_cases() -> Iterator[Case]:
 
 
 def cases() -> list[Case]:
-    """Every generated case (at least 500)."""
-    return [*_bvh_cases(), *_gltf_cases()]
+    """Every generated case (at least 500); a glTF case without an expected phrase gets None."""
+    gltf_cases = [(*c, None) for c in _gltf_cases()]
+    return [*_bvh_cases(), *gltf_cases]  # type: ignore[list-item]

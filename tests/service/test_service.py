@@ -31,6 +31,9 @@ from gltf_validator import assert_valid_glb  # noqa: E402
 sys.path.remove(str(HERE.parent))
 
 FINISHED = ("succeeded", "failed", "canceled")
+# A job that runs a while: 1,200 frames of the long clip (60 fps) at 30 fps is 600 output frames on a 13,380-vertex
+# body, under the default frame x vertex cap (RETARGET_API_MAX_JOB_FRAME_VERTICES, 40 million).
+LONG_OPTIONS = {"fps": 30, "frame_end": 1200}
 
 
 class Client:
@@ -204,7 +207,7 @@ def test_batch_two_by_two(alice: Client, uploaded: dict[str, dict[str, Any]]) ->
 
 
 def test_cancel_queued_and_running(alice: Client, uploaded: dict[str, dict[str, Any]]) -> None:
-    running = alice.job(uploaded["long"]["id"], uploaded["character"]["id"], options={"fps": 120})
+    running = alice.job(uploaded["long"]["id"], uploaded["character"]["id"], options=LONG_OPTIONS)
     queued = alice.job(uploaded["clip"]["id"], uploaded["character"]["id"], options={"frame_end": 30})
     r = alice.http.post(f"/v1/jobs/{queued['id']}/cancel")
     assert r.status_code == 200 and r.json()["status"] == "canceled"
@@ -299,7 +302,7 @@ def test_bad_uploads_are_rejected_with_the_problem(alice: Client, files: dict[st
 
 def test_reaper_requeues_the_job_of_a_killed_worker(service: Service, alice: Client,
                                                     uploaded: dict[str, dict[str, Any]]) -> None:
-    job = alice.job(uploaded["long"]["id"], uploaded["character"]["id"], options={"fps": 120})
+    job = alice.job(uploaded["long"]["id"], uploaded["character"]["id"], options=LONG_OPTIONS)
     seen = alice.wait(job["id"], until=("running",))
     first_worker = seen[-1]["worker"]
     service.kill("cpu")  # kill -9 the worker and its pool process mid-job

@@ -10,7 +10,7 @@ import { Vector3 } from 'three';
 import { api, download, fetchBytes, ApiError } from '../api.js';
 import { esc, formatNumber } from '../format.js';
 import { activePairs, readMetrics } from '../metrics.js';
-import { shareUrl } from '../router.js';
+import { reviewLinkUrl, shareUrl } from '../router.js';
 import { Chart, COLORS } from '../viewer/charts.js';
 import { bindKeys, mountControls } from '../viewer/controls.js';
 import { cloneGltf, parseGltf, sameBytes } from '../viewer/loadglb.js';
@@ -30,11 +30,16 @@ const DOWNLOADS = [
 const CONTACT_COLOR = 0xff4f7a;
 const FOOT_COLOR = 0x3ddc84;
 
-/** Mount the page; returns its cleanup. */
-export function mountReview(root, jobId) {
+/**
+ * Mount the page; returns its cleanup. With ``token`` (a read-only review link, #/review/<token>) the job is
+ * read from /v1/review/<token> without an API key, and only downloads are offered.
+ */
+export function mountReview(root, jobId, { token = null } = {}) {
   const state = { alive: true, cleanups: [], timer: null };
-  root.innerHTML = `<section class="review" data-job="${esc(jobId)}">
-    <header class="review-head"><div class="review-title"><h1>Job <code>${esc(jobId)}</code></h1><span class="review-sub"></span></div>
+  const shared = token !== null;
+  const source = shared ? `/v1/review/${encodeURIComponent(token)}` : `/v1/jobs/${encodeURIComponent(jobId)}`;
+  root.innerHTML = `<section class="review" data-job="${esc(jobId || '')}" data-shared="${shared}">
+    <header class="review-head"><div class="review-title"><h1>${shared ? 'Review' : `Job <code>${esc(jobId)}</code>`}</h1><span class="review-sub"></span></div>
       <div class="review-actions"></div></header>
     <div class="review-body"><div class="loading">Loading job…</div></div>
   </section>`;
@@ -46,15 +51,21 @@ export function mountReview(root, jobId) {
     if (!state.alive) return;
     let job;
     try {
-      job = await api(`/v1/jobs/${encodeURIComponent(jobId)}`);
+      job = await api(source);
+      if (shared) job = { ...job, id: job.job_id };
     } catch (e) {
       body.innerHTML = `<div class="error-box">Cannot load the job: ${esc(e.message)}</div>`;
       if (!(e instanceof ApiError) || e.status === 0 || e.status >= 500) state.timer = setTimeout(poll, 3000);
       return;
     }
     if (!state.alive) return;
-    const names = await loadNames([job.motion_id], [job.target_character_id]);
-    sub.textContent = jobTitle(job, names);
+    if (shared) {
+      sub.textContent = `job ${job.id} · read-only link, valid until ${new Date(job.expires_at).toLocaleString()}`;
+      root.querySelector('.review').dataset.job = job.id;
+    } else {
+      const names = await loadNames([job.motion_id], [job.target_character_id]);
+      sub.textContent = jobTitle(job, names);
+    }
     if (job.status === 'succeeded') {
       await openViewer(job);
       return;
@@ -64,7 +75,7 @@ export function mountReview(root, jobId) {
   };
 
   const openViewer = async (job) => {
-    renderActions(actions, job);
+    renderActions(actions, job, shared);
     body.innerHTML = `<div class="review-grid">
       <div class="review-main">
         <div class="views">${VIEWS.map((v) => `<figure class="view" data-view="${v.name}">
@@ -99,10 +110,11 @@ export function mountReview(root, jobId) {
   };
 }
 
-function renderActions(el, job) {
+function renderActions(el, job, shared = false) {
   const r = job.results || {};
   el.innerHTML = `${DOWNLOADS.filter(([k]) => r[k]).map(([k, f]) => `<button type="button" class="btn small" data-dl="${k}" data-file="${f}">⤓ ${f}</button>`).join('')}
-    <button type="button" class="btn small ghost" data-act="share" title="Copy a link to this review (it does not contain your API key)">Copy review link</button>
+    ${shared ? '' : `<button type="button" class="btn small ghost" data-act="share" title="Copy a link to this review (it does not contain your API key; the reader needs their own)">Copy review link</button>
+    <button type="button" class="btn small ghost" data-act="readonly" title="Make a link anyone can open without a key: this review and its downloads only, read-only, expiring (revocable with the API)">Share read-only link</button>`}
     <span class="share-note"></span>`;
   for (const b of el.querySelectorAll('[data-dl]')) {
     b.onclick = async () => {
@@ -111,6 +123,21 @@ function renderActions(el, job) {
       b.disabled = false;
     };
   }
+  if (shared) return;
+  el.querySelector('[data-act=readonly]').onclick = async (ev) => {
+    const note = el.querySelector('.share-note');
+    ev.target.disabled = true;
+    try {
+      const link = await api(`/v1/jobs/${encodeURIComponent(job.id)}/review-links`, { method: 'POST', body: {} });
+      const url = reviewLinkUrl(window.location, link.token);
+      note.dataset.url = url;
+      note.dataset.readonly = 'true';
+      try { await navigator.clipboard.writeText(url); note.textContent = `read-only link copied (valid until ${new Date(link.expires_at).toLocaleString()})`; } catch { note.textContent = url; }
+    } catch (e) {
+      note.textContent = `Could not make a link: ${e.message}`;
+    }
+    ev.target.disabled = false;
+  };
   el.querySelector('[data-act=share]').onclick = async () => {
     const url = shareUrl(window.location, job.id);
     const note = el.querySelector('.share-note');
