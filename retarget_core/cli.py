@@ -204,7 +204,8 @@ def evaluate(
     out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
     method: Annotated[
         list[str] | None,
-        typer.Option(help="Methods to compare, repeatable: copy, collisions, foot_lock, collisions+foot_lock, full"),
+        typer.Option(help="Methods to compare, repeatable (evaluation.METHODS): copy, collisions, foot_lock, "
+                     "collisions+foot_lock, recurrent+eso, recurrent+eso+collisions+foot_lock, full (the default chain)"),
     ] = None,
     max_frames: Annotated[int | None, typer.Option(help="First frames of each clip (after resampling)")] = 300,
     fps: Annotated[float, typer.Option(help="Resample every clip to this rate first")] = 30.0,

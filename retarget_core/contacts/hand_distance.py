@@ -351,9 +351,9 @@ class _HandTree:
             pts.append(x[c // self.hands, v].numpy())
             cell.append(np.full(len(v), c))
             vertex.append(v.numpy())
-        cells = np.concatenate(cell)
+        cell_of_point = np.concatenate(cell)
         self.vertex = np.concatenate(vertex)
-        self.tree = cKDTree(np.concatenate(pts) + self._offset(cells))
+        self.tree = cKDTree(np.concatenate(pts) + self._offset(cell_of_point))
 
     def _offset(self, cells: np.ndarray) -> np.ndarray:
         out = np.zeros((len(cells), 3))

@@ -265,7 +265,7 @@ def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
     targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
-    return _Terms(poser, TripleSet(groups), targets, pairs)  # type: ignore[arg-type]
+    return _Terms(poser, TripleSet(groups), targets, pairs)
 
 
 def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, params: CollisionParams,
