@@ -146,5 +146,7 @@ def test_cli_eval_writes_the_table(samples: Path, tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     table = json.loads((tmp_path / "eval.json").read_text())
     assert "| copy |" in proc.stdout and (tmp_path / "eval.md").is_file()
-    per_body = {g["bodies"]: g["values"]["penetration_volume"] for g in table["per_body"]}
+    per_body = {g["bodies"]: g["values"]["penetrating_vertices_percent"] for g in table["per_body"]}
     assert per_body["male_bulky"] > per_body["mh_female_skinny"]
+    row = table["rows"][0]
+    assert row["method"] == "copy" and row["values"]["pen_percent"] is not None and row["targets_met"]
