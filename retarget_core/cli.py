@@ -13,7 +13,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from retarget_core.errors import RetargetError
-from retarget_core.stages import STAGE_NAMES
+from retarget_core.stages import STAGE_NAMES, STAGES
 
 if TYPE_CHECKING:
     from retarget_core.retargeted import Retargeted
@@ -50,6 +50,9 @@ def run(
     off: Annotated[
         list[str] | None, typer.Option("--off", help=f"Switch a stage off (repeatable): {', '.join(STAGE_NAMES)}")
     ] = None,
+    on: Annotated[
+        list[str] | None, typer.Option("--on", help="Switch on a stage that is off by default (repeatable)")
+    ] = None,
     device: Annotated[str, typer.Option(help="Torch device: cpu, cuda, cuda:N or auto")] = "cpu",
 ) -> None:
     """Retarget MOTION onto TARGET and write an animated GLB (or BVH)."""
@@ -59,12 +62,12 @@ def run(
 
     if output.suffix.lower() not in (".glb", ".bvh"):
         _fail(f"output must end in .glb or .bvh, not {output.suffix!r}")
-    unknown = [s for s in off or [] if s not in STAGE_NAMES]
+    unknown = [s for s in (off or []) + (on or []) if s not in STAGE_NAMES]
     if unknown:
         _fail(f"unknown stage(s) {', '.join(unknown)}; stages: {', '.join(STAGE_NAMES)}")
     options = RetargetOptions(
         fps=fps, frame_start=start, frame_end=end, clip=clip, in_place=in_place, device=device,
-        stages={s: s not in (off or []) for s in STAGE_NAMES},
+        stages={s.name: (s.default or s.name in (on or [])) and s.name not in (off or []) for s in STAGES},
         joint_map_override=_load_override(map_override), target_joint_map_override=_load_override(target_map_override),
     )  # fmt: skip
     inputs = JobInputs(motion, target if target.startswith("builtin:") else Path(target), source_character, options)

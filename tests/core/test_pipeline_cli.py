@@ -94,6 +94,11 @@ def test_cli_run_and_inspect(samples: Path, tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     assert "wrote" in proc.stderr and out.is_file()
     assert_valid_glb(out)
+    # The command line runs the default chain: stages that are off by default stay off unless switched on.
+    from retarget_core.stages import STAGES
+
+    ran = json.loads((tmp_path / "m.json").read_text())["context"]["stages_run"]
+    assert [s.name for s in STAGES if s.name in ran] == [s.name for s in STAGES if s.default]
     bvh_out = tmp_path / "walk.bvh"
     proc = _cli("run", str(samples / "motions" / "007_03.bvh"), str(samples / "characters" / "mh_male_bulky.glb"), "-o", str(bvh_out))
     assert proc.returncode == 0, proc.stderr
