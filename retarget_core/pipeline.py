@@ -27,6 +27,7 @@ from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.measure import SourceContactResult, carry_contacts, detect_source_contacts, torch_threads
+from retarget_core.metrics.feet_acceptance import planted_feet
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.normalize import NormalizationReport
 from retarget_core.options import RetargetOptions
@@ -137,6 +138,7 @@ def prepare(
             found = _no_self_contacts(found)
         constraints = carry_contacts(found.self_contacts, body.character, body.mapping, target.character, target.mapping)
         target_feet = FootContacts(found.feet.labels, [target.mapping.joints.get(c, -1) for _, c in FOOT_JOINTS])
+        source_planted = planted_feet(body.character, body.mapping, source_view)
     with clock.stage("copy"):
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
@@ -146,7 +148,7 @@ def prepare(
         assets, cached = body_assets(target.character, target.mapping)
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
     return Prepared(inputs, source, body, target, source_view, found, constraints, target_feet, before, assets,
-                    warnings, cached)  # fmt: skip
+                    warnings, cached, source_planted)  # fmt: skip
 
 
 def refine_context(prepared: Prepared, options: RetargetOptions | None = None) -> RefineContext:
@@ -157,8 +159,8 @@ def refine_context(prepared: Prepared, options: RetargetOptions | None = None) -
         parts=prepared.assets.parts, sdf=prepared.assets.sdf,
         source_body=prepared.source_body.character, source_mapping=prepared.source_body.mapping,
         source_view=prepared.source_view, self_contacts=prepared.contacts.self_contacts,
-        constraints=prepared.constraints, feet=prepared.target_feet, before=prepared.before,
-        options=opts, device=resolve_device(opts.device),
+        constraints=prepared.constraints, feet=prepared.target_feet, planted=prepared.source_planted,
+        before=prepared.before, options=opts, device=resolve_device(opts.device),
     )  # fmt: skip
 
 

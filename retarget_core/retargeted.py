@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from torch import Tensor
+
 from retarget_core.body_cache import BodyAssets
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.contacts.foot_contact import FootContacts
@@ -31,6 +33,8 @@ class Prepared:
     assets: BodyAssets
     warnings: list[str] = field(default_factory=list)
     body_cached: bool = False
+    # (F, 2) left/right foot of the source planted, as the judge defines it (on the source body).
+    source_planted: Tensor | None = None
 
 
 @dataclass

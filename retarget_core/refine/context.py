@@ -31,6 +31,9 @@ class RefineContext:
     constraints: the same contacts as target vertex pairs ``(M,)`` per frame (what a stage must keep).
     feet: planted-foot labels ``(F, 4)`` of the source (left toe, left heel, right toe, right heel), on the
         target's joints (``feet.joints`` index the target skeleton).
+    planted: ``(F, 2)`` bool, left and right foot of the source planted as ACCEPTANCE.md defines it (toe low,
+        toe and ankle still, majority-smoothed; :func:`metrics.feet_acceptance.planted_feet`); None: derive
+        from ``feet`` (toe and heel).
     before: the copy baseline every stage's effect is measured against.
     options: the job's options; device: where stages make their tensors.
     progress: called with the fraction 0..1 of the current stage done (optional).
@@ -47,6 +50,7 @@ class RefineContext:
     constraints: ContactConstraints
     feet: FootContacts
     before: Motion
+    planted: torch.Tensor | None = None
     options: RetargetOptions = field(default_factory=RetargetOptions)
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     progress: Callable[[float], None] | None = None

@@ -3,9 +3,10 @@
 Runs last among the refinement stages (METHOD-NOTES: foot locks fight the collision stage otherwise), then
 re-checks the legs' collisions and reports them (it does not re-resolve them).
 
-1. Plants: per foot, the contiguous spans where the source has both toe and heel planted (``ctx.feet``:
-   the source's labels on the target's joints; a rig without toes uses the heel alone). Those are the frames
-   the judge calls planted (toe low, toe and ankle still).
+1. Plants: per foot, the contiguous spans where the source has that foot planted as the judge defines it
+   (``ctx.planted``: toe at most 3 cm above its rest height, toe and ankle moved at most 1 cm per 1/30 s,
+   5-frame majority), so what is locked is what the judged foot accuracy compares. Without those labels,
+   where the source has toe and heel planted (``ctx.feet``; a rig without toes uses the heel alone).
 2. Lock: each plant gets one foot pose for all its frames (SAN's choice, METHOD-NOTES): the ankle's mean
    horizontal position over the span; the foot's mean orientation, made flat (its rest orientation turned
    about the vertical) when it tilts little; the toe's mean bend, also flattened; the height that puts the
@@ -127,6 +128,16 @@ def planted_columns(labels: Tensor, available: Tensor, leg: Leg) -> Tensor:
     return heel
 
 
+def source_plants(ctx: RefineContext, legs: list[Leg], frames: int) -> list[Tensor]:
+    """Per leg, ``(F,)`` bool: the source has that foot planted. The judge's labels (``ctx.planted``: toe low,
+    toe and ankle still, majority-smoothed) where the pipeline gives them, so that what is locked is what the
+    judged foot accuracy compares; otherwise toe and heel of ``ctx.feet``."""
+    if ctx.planted is not None:
+        return [ctx.planted[:frames, k].bool().cpu() for k in range(len(legs))]
+    labels = ctx.feet.labels[:frames]
+    return [planted_columns(labels, ctx.feet.available, leg) for leg in legs]
+
+
 def plant_spans(planted: Tensor) -> list[tuple[int, int]]:
     """Contiguous runs ``[(start, stop)]`` (inclusive) of ``planted (F,)``."""
     p = planted.to(torch.int8)
@@ -246,14 +257,14 @@ def _lowest_foot(model: FootModel, foot_rot: Tensor, toe_world: Tensor | None, t
 
 def lock_leg(
     leg: Leg, plants: list[Plant], model: FootModel, grot: Tensor, gpos: Tensor, sk_rest: tuple[Tensor, Tensor, Tensor],
-    params: FootLockParams, scale: float, pivot_height: Tensor | None = None,
+    params: FootLockParams, scale: float,
 ) -> Locks:  # fmt: skip
     """The locks of one leg's plants (module doc, step 2), vectorised over every planted frame.
 
     With a toe joint, the toe is the pivot: held at one place, flat, its sole on the floor; the foot above it
     keeps the copy's own roll (a heel rising at the end of the stance rises), its plant's mean tilt and
     heading removed, and never rolls the heel under the floor. Without a toe, the ankle is held, flat.
-    ``pivot_height (P,)``: corrected pivot heights (default: on the floor by the rigid foot model)."""
+    Each plant's lowest foot vertex is put on the floor by the rigid foot model."""
     rest_rot, rest_pos, toe_offset_all = sk_rest
     frames = torch.cat([torch.arange(p.start, p.stop + 1) for p in plants])
     plant = torch.cat([torch.full((p.stop - p.start + 1,), k, dtype=torch.long) for k, p in enumerate(plants)])
@@ -273,10 +284,8 @@ def lock_leg(
     float_m = params.lock_float_m * scale
     if leg.toe < 0:
         foot_rot = _slerp(flat_foot, mean_q, keep)[plant]
-        if pivot_height is None:
-            low = _lowest_foot(model, _slerp(flat_foot, mean_q, keep), None, None)
-            pivot_height = float_m - low
-        pivot[:, 1] = pivot_height
+        low = _lowest_foot(model, _slerp(flat_foot, mean_q, keep), None, None)
+        pivot[:, 1] = float_m - low
         return Locks(frames, plant, pivot, pivot[plant], rot.normalize(foot_rot), None)
     toe_offset = toe_offset_all[leg.toe]
     mean_toe = _segment_mean_rotation(grot[frames, leg.toe], plant, count)
@@ -296,10 +305,8 @@ def lock_leg(
             ok = _lowest_foot(model, _slerp(a, b, mid), None, toe_offset) >= f_low - 0.001 * scale
             lo_s, hi_s = torch.where(ok, mid, lo_s), torch.where(ok, hi_s, mid)
         foot_rot[bad] = _slerp(a, b, lo_s)
-    if pivot_height is None:
-        low_all = _lowest_foot(model, base, toe_world[plant], toe_offset)
-        pivot_height = float_m - torch.zeros(count, dtype=gpos.dtype).index_add_(0, plant, low_all) / n_per
-    pivot[:, 1] = pivot_height
+    low_all = _lowest_foot(model, base, toe_world[plant], toe_offset)
+    pivot[:, 1] = float_m - torch.zeros(count, dtype=gpos.dtype).index_add_(0, plant, low_all) / n_per
     ankle = pivot[plant] - rot.apply(foot_rot, toe_offset.expand(len(frames), 3))
     toe_local = rot.normalize(rot.mul(rot.inv(foot_rot), toe_world[plant]))
     return Locks(frames, plant, pivot, ankle, foot_rot, toe_local)
@@ -548,8 +555,7 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
     legs = legs_of(ctx)
     hips = ctx.target_mapping.joints["Hips"]
     root = ([hips, *sk.ancestors(hips)])[-1]
-    labels = ctx.feet.labels[:frames]
-    planted = [planted_columns(labels, ctx.feet.available, leg) for leg in legs]
+    planted = source_plants(ctx, legs, frames)
     blend = max(1, round(params.blend_seconds * motion.fps))
     radius = max(1, round(params.pelvis_smooth_seconds * motion.fps))
     all_plants = [make_plants(plant_spans(p), frames, blend) for p in planted]
@@ -630,4 +636,4 @@ def _report(
     }
 
 
-__all__ = ["FootLockParams", "leg_penetration", "plant_spans", "run"]
+__all__ = ["FootLockParams", "leg_penetration", "plant_spans", "run", "source_plants"]
