@@ -208,8 +208,13 @@ def evaluate(
     method: Annotated[
         list[str] | None,
         typer.Option(help="Methods to compare, repeatable (evaluation.METHODS): copy, collisions, foot_lock, "
-                     "collisions+foot_lock, recurrent+eso, recurrent+eso+collisions+foot_lock, full (the default chain)"),
+                     "collisions+foot_lock, recurrent, recurrent[skeleton|foot|interpenetration] (networks trained "
+                     "on part of the energy), recurrent+eso, recurrent+eso+collisions+foot_lock, full (the default "
+                     "chain)"),
     ] = None,
+    ablation: Annotated[
+        bool, typer.Option(help="Add paper 1 table 3's rows (evaluation.ABLATION) to the methods")
+    ] = False,
     max_frames: Annotated[int | None, typer.Option(help="First frames of each clip (after resampling)")] = 300,
     fps: Annotated[float, typer.Option(help="Resample every clip to this rate first")] = 30.0,
     source_body: Annotated[
@@ -221,7 +226,10 @@ def evaluate(
     jobs: Annotated[int, typer.Option(help="Clips evaluated in parallel processes (one torch thread each)")] = 1,
 ) -> None:
     """Run methods over motions x bodies; print and write the acceptance figures by body and clip group."""
-    from retarget_core.evaluation import run_evaluation
+    from retarget_core.evaluation import ABLATION, run_evaluation
+
+    if ablation:
+        method = list(dict.fromkeys([*ABLATION, *(method or [])]))
 
     groups: dict[str, str] | None = None
     if heldout is not None:
@@ -274,13 +282,15 @@ def train_recurrent(
     threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
     contact_weight: Annotated[float, typer.Option(help="Weight of the vertex-contact term")] = 1000.0,
     ik_share: Annotated[float, typer.Option(help="Share of windows drawn from the IK contact windows")] = 0.3,
+    energy: Annotated[str, typer.Option(help="Energy trained on (paper 1 table 3's ablation): skeleton, foot "
+                                            "(+ foot), interpenetration (+ interpenetration) or full")] = "full",
 ) -> None:
     """Train the geometry-conditioned recurrent retargeter on the energy and write its weights."""
     import logging
 
     import torch
 
-    from retarget_core.model.train_recurrent import TrainConfig, train
+    from retarget_core.model.train_recurrent import ENERGY_TERMS, TrainConfig, train, with_energy
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
@@ -289,6 +299,9 @@ def train_recurrent(
         _fail(f"no clip folder {clips}")
     cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
                       w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
+    if energy not in ENERGY_TERMS:
+        _fail(f"unknown energy {energy!r}; one of {', '.join(ENERGY_TERMS)}")
+    cfg = with_energy(cfg, energy)
     log.parent.mkdir(parents=True, exist_ok=True)
     summary = train(clips, out, cfg, cache_dir.expanduser(), log)
     console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "

@@ -34,6 +34,7 @@ from retarget_core.metrics.acceptance import (
     meets_targets,
 )
 from retarget_core.metrics.report import MetricsReport
+from retarget_core.model.inference import network_weights
 from retarget_core.options import RetargetOptions
 from retarget_core.stages import REFINEMENT_STAGE_NAMES, stage_info
 
@@ -47,6 +48,19 @@ METHODS: dict[str, tuple[str, ...]] = {
     "full": tuple(n for n in REFINEMENT_STAGE_NAMES if stage_info(n).available and stage_info(n).default),
 }
 """Method name -> the refinement stages it runs (``full``: the default chain, what a job runs unless told)."""
+
+MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
+ABLATED_ENERGIES: tuple[str, ...] = ("skeleton", "foot", "interpenetration")
+METHODS.update({"recurrent": ("recurrent",), **{f"recurrent[{e}]": ("recurrent",) for e in ABLATED_ENERGIES}})
+METHOD_WEIGHTS: dict[str, Path] = {f"recurrent[{e}]": MODELS_DIR / f"recurrent-{e}.pt" for e in ABLATED_ENERGIES}
+"""Methods that run the network with other weights than the shipped ones (``retarget train recurrent --energy
+E -o retarget_core/data/models/recurrent-E.pt``)."""
+ABLATION: tuple[str, ...] = (
+    "copy", "recurrent[skeleton]", "recurrent[foot]", "recurrent[interpenetration]", "recurrent", "recurrent+eso",
+    "recurrent+eso+collisions+foot_lock", "collisions+foot_lock",
+)  # fmt: skip
+"""Paper 1 table 3's rows: copy; the network trained on skeleton terms only, + foot, + interpenetration, the full
+energy (the shipped weights); + ESO; + collisions and foot lock; and collisions + foot lock without the network."""
 
 
 def method_options(method: str, fps: float | None) -> RetargetOptions:
@@ -308,6 +322,9 @@ def run_evaluation(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; available: {sorted(METHODS)}")
+    missing = [f"{m} ({METHOD_WEIGHTS[m]})" for m in methods if m in METHOD_WEIGHTS and not METHOD_WEIGHTS[m].is_file()]
+    if missing:
+        raise ValueError(f"no weights for {', '.join(missing)}: train them with retarget train recurrent --energy ...")
     with torch_threads(threads):
         return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups,
                                log, source_character, source_glb_body, jobs)  # fmt: skip
@@ -434,7 +451,8 @@ def _evaluate_clip(
         copy_fig: AcceptanceFigures | None = None
         for m in order:
             t_m = time.perf_counter()
-            after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
+            with network_weights(METHOD_WEIGHTS.get(m)):
+                after = None if m == "copy" else refine(prepared, options=method_options(m, fps)).after
             ms = 0.0 if after is None else 1000 * (time.perf_counter() - t_m) / prepared.before.num_frames
             fig = figures_from_measures(measure_acceptance(tgt.character, tgt.mapping, p.before if after is None else after), src_acc)
             job = measure_job(

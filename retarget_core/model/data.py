@@ -26,6 +26,7 @@ from retarget_core.canonical import CANONICAL_JOINTS, JointMapping, mirror
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import build_correspondence
 from retarget_core.copy_retarget import copy_retarget
+from retarget_core.heldout import heldout_clip_names, training_clip_paths
 from retarget_core.kinematics import global_to_local
 from retarget_core.mapping import map_joints
 from retarget_core.measure import detect_source_contacts
@@ -37,9 +38,10 @@ from retarget_core.motion import Motion
 log = logging.getLogger(__name__)
 
 HELD_OUT_CLIPS: tuple[str, ...] = ("002_03", "005_10", "006_08", "007_05")
-"""Clips no training sees (one per subject group, stand-in for retarget_core/data/heldout.json until the
-held-out split lands on main; the evaluation uses these). The shared ``mh_*`` bodies are held out too:
-training bodies are drawn from :func:`retarget_core.bodies.presets.sample_body_params`."""
+"""Clips kept out of training besides the fixed held-out split (``retarget_core/data/heldout.json``, see
+:mod:`retarget_core.heldout`): the four that ``benchmarks/recurrent_eval.py`` evaluates on, held out before the
+split existed. The shared ``mh_*`` bodies are held out too: training bodies are generated
+(:func:`retarget_core.heldout.sample_training_body_params`)."""
 TRAIN_FPS = 30.0
 MAX_CLIP_FRAMES = 600  # 20 s per clip at most: long clips would dominate the windows drawn
 FOOT_MIRROR = (2, 3, 0, 1)  # (left toe, left heel, right toe, right heel) swapped
@@ -176,7 +178,7 @@ def build_dataset(
         body_assets(target, t_map)  # fill the disk cache of parts and SDF grids now
         log.info("body %s done (%.0f s)", params.name, time.perf_counter() - t0)
     info = {
-        "clips": [p.stem for p in clips], "held_out_clips": list(HELD_OUT_CLIPS), "ik_windows": ik_windows,
+        "clips": [p.stem for p in clips], "held_out_clips": sorted({*HELD_OUT_CLIPS, *heldout_clip_names()}), "ik_windows": ik_windows,
         "ik_length": ik_length, "frames": {k: sum(s.motion.num_frames for s in seqs if s.kind == k) for k in ("clip", "mirror", "ik")},
         "contact_frames": {k: sum(int(s.contact_frame.unique().numel()) for s in seqs if s.kind == k) for k in ("clip", "mirror", "ik")},
         "build_seconds": round(time.perf_counter() - t0, 1),
@@ -185,8 +187,9 @@ def build_dataset(
 
 
 def training_clips(folder: Path) -> list[Path]:
-    """The CMU clips of ``folder`` minus :data:`HELD_OUT_CLIPS`, sorted."""
-    return sorted(p for p in folder.glob("*.bvh") if p.stem not in HELD_OUT_CLIPS)
+    """The CMU clips of ``folder`` that training may use: not in the held-out split, not in
+    :data:`HELD_OUT_CLIPS`; sorted."""
+    return [p for p in training_clip_paths(folder) if p.stem not in HELD_OUT_CLIPS]
 
 
 def load_body_kit(params: BodyParams) -> BodyKit:

@@ -3,6 +3,9 @@ motion, and the pieces ESO needs (encoder states, target embedding)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -24,10 +27,30 @@ from retarget_core.refine.context import RefineContext
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "recurrent.pt"
 
 
-@lru_cache(maxsize=4)
+_WEIGHTS_OVERRIDE: ContextVar[str | None] = ContextVar("recurrent_weights", default=None)
+
+
+@contextmanager
+def network_weights(path: str | Path | None) -> Iterator[None]:
+    """Within the block, the ``recurrent`` and ``eso`` stages use the weights at ``path`` instead of the
+    shipped ones (the evaluation's ablation rows; None: the shipped weights). Not a job option: a job cannot
+    name a file to load."""
+    token = _WEIGHTS_OVERRIDE.set(None if path is None else str(path))
+    try:
+        yield
+    finally:
+        _WEIGHTS_OVERRIDE.reset(token)
+
+
 def shipped_network(device: str = "cpu", path: str | None = None) -> RecurrentRetargeter:
-    """The shipped weights (or those at ``path``) on ``device``, loaded once per process."""
-    model, _ = load_network(path or WEIGHTS_PATH, device)
+    """The shipped weights (or those at ``path``, or set by :func:`network_weights`) on ``device``, loaded
+    once per process."""
+    return _load(device, path or _WEIGHTS_OVERRIDE.get() or str(WEIGHTS_PATH))
+
+
+@lru_cache(maxsize=8)
+def _load(device: str, path: str) -> RecurrentRetargeter:
+    model, _ = load_network(path, device)
     return model
 
 
@@ -73,4 +96,4 @@ def run_network(model: RecurrentRetargeter, inputs: NetworkInputs) -> tuple[Tens
     return r, t, states, emb
 
 
-__all__ = ["WEIGHTS_PATH", "NetworkInputs", "decode_motion", "network_inputs", "run_network", "shipped_network"]
+__all__ = ["WEIGHTS_PATH", "NetworkInputs", "decode_motion", "network_inputs", "network_weights", "run_network", "shipped_network"]

@@ -18,7 +18,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -72,19 +72,43 @@ class TrainConfig:
     w_root: float = 100.0
     w_end_effector: float = 100.0
     w_root_offset: float = 10.0  # the root offset itself (m^2 at 1.80 m): 3 cm costs as much as about 1 degree
+    energy: str = "full"  # which ablation of ENERGY_TERMS the weights above are (set by with_energy)
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 
+ENERGY_TERMS: dict[str, tuple[str, ...]] = {
+    "skeleton": ("w_foot", "w_interpenetration", "w_contact"),
+    "foot": ("w_interpenetration", "w_contact"),
+    "interpenetration": ("w_contact",),
+    "full": (),
+}
+"""Paper 1 table 3's ablation: energy name -> the weights set to 0 (skeleton terms only; + foot;
++ interpenetration; the full energy with vertex contacts)."""
+
+
+def with_energy(cfg: TrainConfig, energy: str) -> TrainConfig:
+    """``cfg`` trained on the energy ``energy`` (a key of :data:`ENERGY_TERMS`): the other terms weighted 0."""
+    if energy not in ENERGY_TERMS:
+        raise ValueError(f"unknown energy {energy!r}; one of {', '.join(ENERGY_TERMS)}")
+    return replace(cfg, energy=energy, **{w: 0.0 for w in ENERGY_TERMS[energy]})
+
+
 def body_bank(seed: int, count: int) -> list[BodyParams]:
-    """``count`` generated bodies (gender, age, height, proportions sampled; weight and muscle stratified)."""
-    from retarget_core.bodies.presets import sample_body_params
+    """``count`` generated bodies (gender, age, height, proportions sampled; weight and muscle stratified), each
+    away from the held-out bodies (redrawn while :func:`retarget_core.heldout.near_heldout_body`)."""
+    from retarget_core.heldout import MAX_REJECTIONS, near_heldout_body, sample_training_body_params
 
     rng = np.random.default_rng(seed + 1000)
     out = []
     for k in range(count):
-        p = sample_body_params(rng, name=f"train_{k}")
         w, m = BODY_WEIGHT_MUSCLE[k % len(BODY_WEIGHT_MUSCLE)]
-        out.append(p.model_copy(update={"weight": w, "muscle": m}))
+        for _ in range(MAX_REJECTIONS):
+            p = sample_training_body_params(rng, name=f"train_{k}").model_copy(update={"weight": w, "muscle": m})
+            if not near_heldout_body(p):
+                break
+        else:
+            raise RuntimeError(f"no training body {k} away from the held-out bodies")
+        out.append(p)
     return out
 
 
@@ -131,8 +155,10 @@ def window_loss(
     frames = torch.from_numpy(rng.integers(0, t_n, size=(b_n, cfg.geometry_frames))).long()
     rows = (torch.arange(b_n)[:, None] * t_n + frames).reshape(-1)
     flat_r, flat_p = grot.reshape(b_n * t_n, *grot.shape[2:]), gpos.reshape(b_n * t_n, *gpos.shape[2:])
-    terms["interpenetration"] = en.interpenetration(kit, flat_r[rows], flat_p[rows]).mean()
-    if batch.contact_i.numel():
+    zero = new_rot.new_zeros(())
+    # Terms weighted 0 (an ablation, see ENERGY_TERMS) are not computed: they cost most of a step.
+    terms["interpenetration"] = en.interpenetration(kit, flat_r[rows], flat_p[rows]).mean() if cfg.w_interpenetration else zero
+    if batch.contact_i.numel() and cfg.w_contact:
         d2 = en.contact_distance2(kit, flat_r, flat_p, batch.contact_batch * t_n + batch.contact_frame, batch.contact_i, batch.contact_j)
         terms["contact"] = d2.mean()
     else:
@@ -213,4 +239,4 @@ def _jsonable(x: Any) -> Any:
     return json.loads(json.dumps(x, default=str))
 
 
-__all__ = ["BODY_WEIGHT_MUSCLE", "TrainConfig", "body_bank", "get_dataset", "train", "window_loss"]
+__all__ = ["BODY_WEIGHT_MUSCLE", "ENERGY_TERMS", "TrainConfig", "body_bank", "get_dataset", "train", "window_loss", "with_energy"]

@@ -108,3 +108,41 @@ def test_pipeline_runs_recurrent_and_eso_when_switched_on(prepared: Prepared) ->
     assert result.stages_run[-2:] == ["recurrent", "eso"] or {"recurrent", "eso"} <= set(result.stages_run)
     assert result.stage_reports["eso"]["iterations"] == 6
     assert result.after.num_frames == prepared.before.num_frames
+
+
+def test_training_keeps_out_the_heldout_split(shared_data: Path) -> None:
+    from retarget_core.heldout import heldout_clip_names, near_heldout_body
+    from retarget_core.model.data import training_clips
+    from retarget_core.model.train_recurrent import body_bank
+
+    clips = {p.stem for p in training_clips(shared_data / "motions" / "cmu")}
+    assert clips and not clips & set(heldout_clip_names())
+    assert not any(near_heldout_body(b) for b in body_bank(0, 6))
+
+
+def test_ablated_energy_zeroes_its_terms() -> None:
+    from retarget_core.model.train_recurrent import ENERGY_TERMS, with_energy
+
+    full = TrainConfig()
+    skeleton = with_energy(full, "skeleton")
+    assert skeleton.w_contact == skeleton.w_interpenetration == skeleton.w_foot == 0.0
+    assert skeleton.w_rotation == full.w_rotation and skeleton.energy == "skeleton"
+    foot = with_energy(full, "foot")
+    assert foot.w_foot == full.w_foot > 0 and foot.w_interpenetration == 0.0
+    assert with_energy(full, "full") == full
+    assert set(ENERGY_TERMS) == {"skeleton", "foot", "interpenetration", "full"}
+    with pytest.raises(ValueError, match="unknown energy"):
+        with_energy(full, "contact-only")
+
+
+def test_network_weights_override_is_scoped(ctx: RefineContext, tmp_path: Path) -> None:
+    from retarget_core.model.network import save_network
+
+    torch.manual_seed(0)
+    other = tmp_path / "zero.pt"
+    save_network(RecurrentRetargeter(NetworkConfig(hidden=32, code=16)).eval(), other, {"steps": 0})
+    shipped = inference.shipped_network()
+    with inference.network_weights(other):
+        inside = inference.shipped_network()
+    assert inside is not shipped and inside.config.hidden == 32
+    assert inference.shipped_network() is shipped
