@@ -3,19 +3,26 @@ turned so that they leave the body, contacts kept, smooth, never worse than the 
 
 Method (an optimisation resolver on the whole clip at once; paper 2's learned per-limb model is not built):
 
-1. Broad phase: every frame is posed with all vertices and measured (:func:`check_frames`); frames with a
-   vertex deeper than the metrics' tolerance, or with a hand contact, are optimised, with a margin of frames.
+1. Broad phase: every frame is posed with all vertices and measured (:func:`check_frames`, rigid part SDFs),
+   and the arms are tested against the posed torso mesh as the judge tests them (:mod:`collision_mesh`: the
+   torso's skin near the armpit is dragged by the arm's skinning weights, which the rigid grids cannot see);
+   frames with a vertex deeper than the metrics' tolerance in either test, or with a hand contact, are
+   optimised, with a margin of frames.
 2. Parametrisation: a rotation-vector residual per optimised joint on top of the input's local rotation
-   (``q = q_in * exp(r)``), ``r(t)`` a cubic B-spline over knots every ``knot_spacing`` frames
-   (:mod:`retarget_core.refine.temporal`): C2 in time, so no per-frame jitter; zero knots give the input back.
+   (``q = q_in * exp(r)``), ``r(t)`` a cubic B-spline over knots every ``knot_spacing`` frames at 30 fps (scaled
+   to the clip's rate; :mod:`retarget_core.refine.temporal`): C2 in time, so no per-frame jitter; zero knots
+   give the input back.
 3. Energy (:mod:`retarget_core.refine.collision_energy`), summed over the optimised frames: penetration of a few
    hundred sentinel vertices beyond their bind-pose depth, geodesically weighted, squared (grows with depth);
-   contacts (ctx.constraints) as targets: the hand's own penetration into the part it touches is tolerated up
-   to ``contact_tolerance_m`` and the hand is pulled onto that part's surface; hand, foot and head positions
-   kept near the input's; identity (per-joint stiffness) and knot smoothness on the residual. Adam steps,
-   then a finishing pass that adds every vertex still found penetrating.
-4. Never worse: the result is checked per frame with all vertices; on frames whose penetration or contact got
-   worse the residual is blended smoothly back to zero (the input) around them.
+   arm vertices inside (or within ``mesh_near_m`` of) the posed torso: squared distance to the plane of their
+   closest posed triangle; contacts (ctx.constraints) as targets: a touching hand is kept out of the part it
+   touches like any collision (the judge counts a sunk hand as penetration) and pulled within
+   ``contact_gap_m`` of its surface; hand, foot and head positions kept near the input's; identity (per-joint
+   stiffness) and knot smoothness on the residual. Adam steps, then a finishing pass that adds every vertex
+   still found penetrating and the arm-torso pairs found at the pose reached.
+4. Never worse: the result is checked per frame with all vertices (SDFs and the posed torso mesh); on frames
+   whose penetration or contact got worse the residual is blended smoothly back to zero (the input) around
+   them.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck, check_frames, contact_instances
+from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energy, mesh_pairs_of_motion, mesh_setup
 from retarget_core.refine.collision_energy import (
     ContactPairs,
     ContactTargets,
@@ -109,6 +117,9 @@ class CollisionParams:
     finish_slack_m: float = 0.01  # the finishing pass's extra vertices: segments within 1 cm on the input
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0
+    w_mesh: float = 5.0  # per cm^2 of an arm vertex inside the posed torso or head mesh (:mod:`collision_mesh`)
+    mesh_near_m: float = 0.01  # arm vertices this close outside the posed torso or head are kept out too
+    use_mesh: bool = True  # test arms against the posed torso and head meshes (the rigid SDFs miss the armpit)
     w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
     w_pair: float = 1.0  # per cm^2 of a contact pair drifting apart beyond the allowance
     pair_allowance_m: float = 0.01  # a pair may separate this much freely (a sunk hand comes out to the surface)
@@ -179,6 +190,7 @@ class _Terms:
     triples: TripleSet
     targets: ContactTargets
     pairs: ContactPairs
+    mesh: MeshTerms
 
 
 def _exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
@@ -230,7 +242,7 @@ def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, p
 
 def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: ContactInstances, exempt: Tensor,
                  params: CollisionParams, scale: float, slack: float | Tensor,
-                 hand_points: Tensor | None = None) -> _Terms:  # fmt: skip
+                 hand_points: Tensor | None = None, mesh: MeshPairs | None = None) -> _Terms:  # fmt: skip
     """Poser, candidate triples (segments within ``slack`` (m, or per point) on the input pose) and contact
     targets of a point set."""
     poser = PointPoser(ctx.target, points, ctx.parts.joints)
@@ -248,7 +260,22 @@ def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: C
     if pairs.count:
         with torch.no_grad():
             pairs.input_distance = pair_distance(pairs, posed)
-    return _Terms(poser, triples, targets, pairs)
+    return _Terms(poser, triples, targets, pairs, _mesh_terms(ctx, mesh, prob.frames, points))
+
+
+def _mesh_terms(ctx: RefineContext, mesh: MeshPairs | None, frames: Tensor, points: Tensor) -> MeshTerms:
+    """The mesh pairs (clip frames) on the optimised ``frames`` whose vertex and triangle are all ``points``,
+    as indices into the optimised frames and ``points``."""
+    e = torch.zeros(0, dtype=torch.long)
+    if mesh is None or mesh.count == 0:
+        return MeshTerms(e, e, torch.zeros(0, 3, dtype=torch.long), torch.zeros(0))
+    pos_of = torch.full((ctx.num_frames,), -1, dtype=torch.long)
+    pos_of[frames] = torch.arange(len(frames))
+    point_of = torch.full((ctx.target.num_vertices,), -1, dtype=torch.long)
+    point_of[points] = torch.arange(len(points))
+    f, v, t = pos_of[mesh.frame], point_of[mesh.vertex], point_of[mesh.tri]
+    ok = (f >= 0) & (v >= 0) & (t >= 0).all(-1)
+    return MeshTerms(f[ok], v[ok], t[ok], mesh.sign[ok])
 
 
 def _contact_pairs(ctx: RefineContext, frames: Tensor, points: Tensor) -> ContactPairs:
@@ -268,15 +295,16 @@ def _contact_pairs(ctx: RefineContext, frames: Tensor, points: Tensor) -> Contac
 
 def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     """``terms`` with a poser of only the points its triples and contact targets use (indices remapped)."""
-    t, pr = terms.targets, terms.pairs
-    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j]))
+    t, pr, me = terms.targets, terms.pairs, terms.mesh
+    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j, me.point, me.tri.flatten()]))
     remap = torch.full((len(terms.poser.points),), -1, dtype=torch.long)
     remap[used] = torch.arange(len(used))
     poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
     groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
     targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
-    return _Terms(poser, TripleSet(groups), targets, pairs)
+    mesh = MeshTerms(me.frame, remap[me.point], remap[me.tri], me.sign)
+    return _Terms(poser, TripleSet(groups), targets, pairs, mesh)
 
 
 def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, params: CollisionParams,
@@ -289,6 +317,7 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
         "contact": params.w_contact * contact_energy(ctx.sdf, terms.targets, posed, seg_mats, scale,
                                                       params.contact_gap_m / scale),
         "contact_pairs": params.w_pair * pair_energy(terms.pairs, posed, scale, params.pair_allowance_m / scale),
+        "mesh": params.w_mesh * mesh_energy(terms.mesh, posed, scale, params.clearance_m / scale),
         "end_effector": (ee.pow(2).sum(-1) * prob.ee_weight).sum(),
         "identity": params.w_identity * (knots.pow(2).sum(-1) * prob.stiffness).sum(),
         "smooth": params.w_smooth * (knots[2:] - 2 * knots[1:-1] + knots[:-2]).pow(2).sum(),
@@ -310,7 +339,7 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
             with torch.no_grad():
                 posed, seg_mats, _ = full_terms.poser(prob.local(knots), prob.trans)
             near = near_triples(ctx.sdf, full, posed, seg_mats, within)
-            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs))
+            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs, full_terms.mesh))
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
         for g in opt.param_groups:
@@ -361,6 +390,8 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     contacts = contact_instances(sdf, ctx.constraints)
     tol = params.penetration_tolerance_m / scale
     before = check_frames(ch, sdf, rot_in, trans, torch.arange(f_n), contacts, tol)
+    body = mesh_setup(ch, ctx.target_mapping) if params.use_mesh else None
+    mesh_in = _with_mesh(ch, body, before, rot_in, trans, params.mesh_near_m / scale)
     timings = {"check_before": time.process_time() - cpu0}
     ctx.report_progress(0.3)
     report: dict[str, Any] = {"method": "optimisation: B-spline rotation residuals on sentinel SDF energy"}
@@ -388,9 +419,11 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         if contacts.count:  # hands in contact get denser sentinels: the contact term needs their nearest point
             hands = contacts.hand.unique().tolist()
             contact_pts = torch.cat([contact_pts, sentinel_vertices(sdf, ch.vertices.float(), params.hand_cell_m / scale, hands)])
-        points = torch.unique(torch.cat([sentinels, contact_pts]))
+        mesh_pts = torch.cat([mesh_in.vertex, mesh_in.tri.flatten()]) if mesh_in is not None else contact_pts[:0]
+        points = torch.unique(torch.cat([sentinels, contact_pts, mesh_pts]))
         coarse = prob.every(params.sentinel_frame_stride)
-        terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale)
+        terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale,
+                                mesh=mesh_in)  # fmt: skip
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
@@ -400,7 +433,15 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         iterations = params.iterations
         timings["sentinel_loop"] = time.process_time() - t
         ctx.report_progress(0.6)
-        # Finishing pass: every vertex penetrating in the input joins the sentinels.
+        # Finishing pass: every vertex penetrating in the input joins the sentinels; the arms are tested against
+        # the posed torso again at the pose reached (an arm moved out of a leg may have entered the armpit).
+        if body is not None and mesh_in is not None:
+            with torch.no_grad():
+                now = _apply_residual(rot_in, prob.joints.tolist(), (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3))
+            mesh_now = mesh_pairs_of_motion(ch, body, now, trans, active, params.mesh_near_m / scale)
+            mesh_now.frame = active[mesh_now.frame]
+            mesh_in = mesh_in.union(mesh_now, ch.num_vertices)
+            points = torch.unique(torch.cat([points, mesh_in.vertex, mesh_in.tri.flatten()]))
         deep = before.depth[active] > 0
         extra = torch.nonzero(deep.any(0)).flatten()
         if params.finish_iterations and len(extra):
@@ -410,7 +451,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             hand_points = points
             points = torch.unique(torch.cat([points, extra]))
             slack = torch.where(is_sentinel[points], params.candidate_slack_m / scale, params.finish_slack_m / scale)
-            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack, hand_points)
+            terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack, hand_points, mesh_in)
             report["finish_points"] = int(len(points))
             report["finish_triples"] = terms_fin.triples.count
             terms = _optimise(ctx, prob, terms_fin, knots, params.finish_iterations,
@@ -431,6 +472,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
                 break
             cand = _apply_residual(rot_in, joints, resid_all * weight[:, None, None])
             after = check_frames(ch, sdf, cand, trans, check_set, contacts, tol)
+            _with_mesh(ch, body, after, cand, trans, params.mesh_near_m / scale)
             final = _merge(final, after)
             worse = _worse(before, after, contacts, params, scale)
             if not bool(worse.any()):
@@ -496,6 +538,18 @@ def _figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, 
             "mean_distance_after_cm": round(float(after.contact.mean() * scale * 100.0), 3),
         }
     return out
+
+
+def _with_mesh(ch: Any, body: Any, check: FrameCheck, rotations: Tensor, translations: Tensor,
+               near: float) -> MeshPairs | None:  # fmt: skip
+    """Arm vertices inside the posed torso and head (or within ``near``) at ``check``'s frames; ``check.max_depth``
+    becomes the deeper of the SDF's and the mesh's (in place). The pairs' frames are clip frames."""
+    if body is None:
+        return None
+    mesh = mesh_pairs_of_motion(ch, body, rotations, translations, check.frames, near)
+    check.max_depth = torch.maximum(check.max_depth, mesh.max_depth(len(check.frames)))
+    mesh.frame = check.frames[mesh.frame]
+    return mesh
 
 
 def run(ctx: RefineContext, motion: Motion) -> StageOutcome:
