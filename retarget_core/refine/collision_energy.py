@@ -9,8 +9,8 @@ Terms (lengths in cm at a 1.80 m character, so the weights mean the same on ever
 - penetration: ``sum geodesic_weight * relu(depth - tolerance)^2`` with ``depth`` the blended-SDF depth beyond the
   bind pose's; the tolerance is ``-clearance`` for a collision (pushed a little outside) and ``+contact
   tolerance`` for a hand in the part it touches (a contact is a target, not a collision);
-- contact: ``relu(d)^2`` with ``d`` the signed distance of a contact's hand vertex to the part it touches
-  (nearest segment of that part's cluster): a hand that left the surface is pulled back to it.
+- contact: ``relu(d - gap)^2`` with ``d`` the signed distance of a contact's nearest hand point to the part it
+  touches (nearest segment of that part's cluster): a hand that left the surface is pulled back within ``gap``.
 """
 
 from __future__ import annotations
@@ -185,12 +185,14 @@ def instance_distance(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_
     return out.scatter_reduce(0, targets.instance, best, "amin", include_self=True)
 
 
-def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor, scale: float) -> Tensor:
-    """Sum of ``relu(d)^2`` (cm^2 at 1.80 m) over the active contact instances (a scalar)."""
+def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor, scale: float,
+                   gap: float = 0.0) -> Tensor:  # fmt: skip
+    """Sum of ``relu(d - gap)^2`` (cm^2 at 1.80 m) over the active contact instances (a scalar): a hand farther
+    than ``gap`` (m) from the part it touches is pulled back within it."""
     if targets.count == 0:
         return posed.new_zeros(())
     d = instance_distance(sdf, targets, posed, seg_mats)
-    return ((d.clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
+    return (((d - gap).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
 
 
 @dataclass

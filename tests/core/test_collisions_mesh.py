@@ -1,0 +1,45 @@
+"""Small built cases for the collision stage's posed-mesh term and contact gap (no real bodies: fast)."""
+
+from __future__ import annotations
+
+import torch
+
+from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energy, mesh_signed_distance
+
+
+def _one_triangle(x: torch.Tensor, sign: float) -> tuple[MeshTerms, torch.Tensor]:
+    tri = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal +z
+    posed = torch.cat([x[None], tri])[None]  # (1, 4, 3): the point, then the triangle
+    terms = MeshTerms(torch.tensor([0]), torch.tensor([0]), torch.tensor([[1, 2, 3]]), torch.tensor([sign]))
+    return terms, posed
+
+
+def test_mesh_signed_distance_is_the_plane_distance_with_the_pair_sign() -> None:
+    terms, posed = _one_triangle(torch.tensor([0.2, 0.2, -0.03]), -1.0)  # below, and "outside" is -z here
+    assert torch.allclose(mesh_signed_distance(terms, posed), torch.tensor([0.03]))
+    terms, posed = _one_triangle(torch.tensor([0.2, 0.2, -0.03]), 1.0)  # outside is +z: 3 cm inside
+    assert torch.allclose(mesh_signed_distance(terms, posed), torch.tensor([-0.03]))
+
+
+def test_mesh_energy_pushes_an_inside_point_out_and_leaves_an_outside_one() -> None:
+    x = torch.tensor([0.2, 0.2, -0.02], requires_grad=True)
+    terms, posed = _one_triangle(x, 1.0)
+    e = mesh_energy(terms, posed, scale=1.0, clearance=0.001)
+    assert abs(float(e) - 2.1**2) < 1e-4  # 2 cm deep + 1 mm clearance, in cm^2
+    e.backward()
+    assert x.grad is not None and float(x.grad[2]) < 0  # descent moves the point up, out of the part
+    terms, posed = _one_triangle(torch.tensor([0.2, 0.2, 0.02]), 1.0)
+    assert float(mesh_energy(terms, posed, scale=1.0, clearance=0.001)) == 0.0
+
+
+def test_mesh_pairs_union_keeps_one_pair_per_frame_and_vertex_preferring_the_newer() -> None:
+    def pairs(frames: list[int], verts: list[int], depth: float) -> MeshPairs:
+        n = len(frames)
+        return MeshPairs(torch.tensor(frames), torch.tensor(verts), torch.zeros(n, 3, dtype=torch.long),
+                         torch.ones(n), torch.full((n,), depth))  # fmt: skip
+
+    old, new = pairs([0, 0, 1], [5, 6, 5], 0.01), pairs([0, 2], [5, 7], 0.02)
+    u = old.union(new, num_vertices=10)
+    got = {(int(f), int(v)): round(float(d), 6) for f, v, d in zip(u.frame, u.vertex, u.depth, strict=True)}
+    assert got == {(0, 5): 0.02, (0, 6): 0.01, (1, 5): 0.01, (2, 7): 0.02}
+    assert torch.allclose(u.max_depth(3), torch.tensor([0.02, 0.01, 0.02]))
