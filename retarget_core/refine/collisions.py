@@ -41,7 +41,6 @@ from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck, check_frames, contact_instances
-from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energy, mesh_pairs_of_motion, mesh_setup
 from retarget_core.refine.collision_energy import (
     ContactPairs,
     ContactTargets,
@@ -55,6 +54,7 @@ from retarget_core.refine.collision_energy import (
     penetration_energy,
     sentinel_vertices,
 )
+from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energy, mesh_pairs_of_motion, mesh_setup
 from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.point_poser import PointPoser, rotvec_to_matrix
 from retarget_core.refine.temporal import bspline_basis, fallback_weights
