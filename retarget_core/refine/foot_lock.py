@@ -500,7 +500,8 @@ def _pose_subset(character: Character, index: Tensor, grot: Tensor, gpos: Tensor
 
 
 def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: FootLockParams) -> dict[str, Any]:
-    """Legs against the other leg and the arms (and arms against legs) on ``frames``: the deepest
+    """Leg vertices against the other leg and the arms on ``frames`` (what moving the legs can change; arm
+    vertices inside a leg are not tested: the leg vertices around them are inside the arm too): the deepest
     penetration (cm at 1.80 m), the frames deeper than 1 cm and the mean count of penetrating vertices."""
     to_cm = REFERENCE_HEIGHT_M / ctx.target.height * 100.0
     empty = {"frames": 0, "max_depth_cm": 0.0, "frames_over_1cm": 0, "penetrating_vertices_mean": 0.0}
@@ -511,12 +512,12 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
     legs = (cl == CLUSTERS.index("left_leg")) | (cl == CLUSTERS.index("right_leg"))
     arms = (cl == CLUSTERS.index("left_arm")) | (cl == CLUSTERS.index("right_arm"))
     other = cl[:, None] != cl[None, :]
-    allowed = ctx.sdf.allowed & other & ((legs[:, None] & (legs | arms)[None, :]) | (arms[:, None] & legs[None, :]))
+    allowed = ctx.sdf.allowed & other & legs[:, None] & (legs | arms)[None, :]
     grot, gpos = motion.global_transforms()
     grot, gpos = grot[frames], gpos[frames]
     with torch.no_grad():
-        # Only leg and arm vertices are tested: pose those alone (the others stay at 0, never sampled).
-        limb_part = (legs | arms)[parts.vertex_part]
+        # Only leg vertices are tested: pose those alone (the others stay at 0, never sampled).
+        limb_part = legs[parts.vertex_part]
         index = torch.nonzero(limb_part).flatten()
         posed = gpos.new_zeros(len(frames), ctx.target.num_vertices, 3)
         posed[:, index] = _pose_subset(ctx.target, index, grot, gpos)
