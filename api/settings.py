@@ -43,9 +43,13 @@ class Settings(BaseSettings):
     broker_polling_interval_seconds: float = Field(
         default=0.2, gt=0, description="How often a worker polls the SQLite broker (embedded mode only)"
     )
-    db_pool_size: int = Field(default=10, ge=1, description="Database connections each process keeps open")
+    db_pool_size: int = Field(
+        default=24, ge=1, description="Database connections each process keeps open (at least api_threads: a "
+        "connection opened past the pool size is closed again when returned, and under load one would be opened "
+        "and closed for nearly every request)"
+    )
     db_max_overflow: int = Field(
-        default=30, ge=0, description="Extra connections a process may open under load (pool size + overflow "
+        default=16, ge=0, description="Extra connections a process may open under load (pool size + overflow "
         "must be at least api_threads)"
     )
     db_pool_timeout_seconds: float = Field(default=10.0, gt=0, description="Longest wait for a free connection")

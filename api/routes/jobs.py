@@ -7,14 +7,14 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel
-from sqlalchemy import func, select
+from sqlalchemy import bindparam, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.callbacks import CallbackRefused, check_url
-from api.db import session_scope, write_lock
+from api.db import LoopReader, session_scope, write_lock
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
@@ -195,14 +195,33 @@ def list_jobs(
     )
 
 
-def _get_job(settings: Settings, key: ApiKey, job_id: str) -> JobOut:
-    with session_scope(settings.resolved_database_url) as s:
-        return out(s, find_job(s, key, job_id), settings)
+_JOBS = Job.__table__
+_DELIVERIES = WebhookDelivery.__table__
+_JOB_BY_ID = select(_JOBS).where(_JOBS.c.id == bindparam("job_id"))
+_DELIVERIES_OF_JOB = (select(_DELIVERIES).where(_DELIVERIES.c.job_id == bindparam("job_id"))
+                      .order_by(_DELIVERIES.c.created_at))
+
+
+def read_job(reader: LoopReader, settings: Settings, key: ApiKey, job_id: str) -> JobOut:
+    """A job as GET answers it, read on the event loop as row tuples (no ORM objects, no session)."""
+    rows = reader.rows(_JOB_BY_ID, {"job_id": job_id})
+    job = rows[0] if rows else None
+    if job is None or job.owner_id != key.id:
+        raise HTTPException(404, f"job {job_id!r} not found")
+    delivery = None
+    if job.callback_url:
+        deliveries = reader.rows(_DELIVERIES_OF_JOB, {"job_id": job_id})
+        delivery = deliveries[-1] if deliveries else None
+    note = job.note
+    if job.status == "queued" and not note:
+        note = waiting_note(job.queue, settings, reader)
+    return job_out(job, delivery, note=note)
 
 
 @router.get("/{job_id}", response_model=JobOut, summary="Get a job", responses={404: {"model": ErrorOut}})
-async def get_job(job_id: str, key: CurrentKey, settings: SettingsDep) -> Response:
-    return json_response(await run_in_threadpool(_get_job, settings, key, job_id))
+async def get_job(request: Request, job_id: str, key: CurrentKey) -> Response:
+    state = request.app.state
+    return json_response(read_job(state.loop_reader, state.settings, key, job_id))
 
 
 @router.post(
