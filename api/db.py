@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Iterator
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, contextmanager, nullcontext, suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -188,10 +188,8 @@ class LoopReader:
     def close(self) -> None:
         conn, self._conn = self._conn, None
         if conn is not None:
-            try:
+            with suppress(Exception):  # a broken connection may refuse to close cleanly
                 conn.close()
-            except Exception:  # a broken connection may refuse to close cleanly
-                pass
         if self._engine is not None and self._pid == os.getpid():
             self._engine.dispose()
         self._engine = None
