@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
+        if settings.gil_switch_interval_seconds > 0:
+            sys.setswitchinterval(settings.gil_switch_interval_seconds)
         marker = None
         if settings.sent_mark_interval_seconds > 0:
             marker = app.state.sent_marker = SentMarker(settings.resolved_database_url,

@@ -54,6 +54,11 @@ class Settings(BaseSettings):
     )
     db_pool_timeout_seconds: float = Field(default=10.0, gt=0, description="Longest wait for a free connection")
     api_threads: int = Field(default=24, ge=1, description="Threads of an API process that run blocking work")
+    gil_switch_interval_seconds: float = Field(
+        default=0.001, ge=0, description="Python's thread switch interval in an API process (sys.setswitchinterval; "
+        "0: leave Python's 0.005). A busy event loop hands the interpreter lock to a waiting thread only this "
+        "often, and a submission's thread needs it after each database or broker round trip"
+    )
 
     # Uploads
     max_upload_bytes: int = Field(default=200 * 1024 * 1024, gt=0, description="Largest accepted upload")

@@ -203,11 +203,14 @@ def _insert_job(settings: Settings, celery: Any, key: ApiKey, values: dict[str, 
     then the send."""
     url = settings.resolved_database_url
     try:
-        with write_lock(url), get_engine(url).begin() as conn:
-            job = conn.execute(_INSERT_JOB, values).one()
+        with write_lock(url), get_engine(url).connect() as conn:
             if idem:
-                conn.execute(_INSERT_IDEM, {"owner_id": key.id, "key": idem, "scope": scope, "fingerprint": fp,
-                                            "resource_id": job.id})
+                with conn.begin():
+                    job = conn.execute(_INSERT_JOB, values).one()
+                    conn.execute(_INSERT_IDEM, {"owner_id": key.id, "key": idem, "scope": scope, "fingerprint": fp,
+                                                "resource_id": job.id})
+            else:  # one statement: autocommit spares PostgreSQL's BEGIN and COMMIT round trips
+                job = conn.execution_options(isolation_level="AUTOCOMMIT").execute(_INSERT_JOB, values).one()
     except IntegrityError as exc:
         return _replay_race(settings, key, idem, scope, fp, exc), True
     send_and_mark(url, celery, [(job.id, job.attempt, job.queue)], marker)
