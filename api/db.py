@@ -10,14 +10,17 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Iterator
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, contextmanager, nullcontext, suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, cast
 
-from sqlalchemy import CursorResult, Engine, Executable, create_engine, event
+from sqlalchemy import CursorResult, Engine, Executable, Row, create_engine, event
+from sqlalchemy.engine import Connection
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import StaticPool
 
 from api.settings import normalise_database_url
 
@@ -134,6 +137,62 @@ def session_scope(url: str) -> Iterator[Session]:
         raise
     finally:
         session.close()
+
+
+class LoopReader:
+    """One connection of its own for short reads made on the event loop itself (status polls).
+
+    Handing a read that takes a fraction of a millisecond to a thread costs more than the read (the hand-off,
+    the thread's wake-up, the GIL passed back and forth), and a thread may wait behind others' work. The event
+    loop of an API process instead reads through this connection, which no thread shares, so it never waits
+    for the pool. Only single-row reads by key belong here: they never wait for a lock (SQLite in WAL mode and
+    PostgreSQL let readers pass writers). PostgreSQL reads are in autocommit (one round trip, no BEGIN or
+    COMMIT); a connection found broken is replaced and the read tried once more."""
+
+    def __init__(self, url: str) -> None:
+        self.url = normalise_database_url(url)
+        self._engine: Engine | None = None
+        self._conn: Connection | None = None
+        self._pid = os.getpid()
+
+    def _connection(self) -> Connection:
+        if self._conn is None or self._pid != os.getpid():
+            if self._engine is None or self._pid != os.getpid():
+                self._pid = os.getpid()
+                if self.url.startswith("sqlite"):
+                    self._engine = create_engine(self.url, poolclass=StaticPool,
+                                                 connect_args={"timeout": 30, "check_same_thread": False})
+                    event.listen(self._engine, "connect", _sqlite_pragmas)
+                else:
+                    self._engine = create_engine(self.url, poolclass=StaticPool, isolation_level="AUTOCOMMIT")
+            self._conn = self._engine.connect()
+        return self._conn
+
+    def rows(self, statement: Executable, params: dict[str, Any] | None = None) -> list[Row[Any]]:
+        """The rows of a SELECT, its transaction ended (SQLite keeps no snapshot open between reads)."""
+        for retry in (False, True):
+            conn = self._connection()
+            try:
+                result = list(conn.execute(statement, params).all())
+                conn.rollback()
+                return result
+            except DBAPIError as exc:
+                self.close()
+                if retry or not exc.connection_invalidated:
+                    raise
+            except BaseException:
+                self.close()
+                raise
+        raise AssertionError("unreachable")
+
+    def close(self) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            with suppress(Exception):  # a broken connection may refuse to close cleanly
+                conn.close()
+        if self._engine is not None and self._pid == os.getpid():
+            self._engine.dispose()
+        self._engine = None
 
 
 def dispose_all() -> None:

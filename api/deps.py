@@ -9,9 +9,8 @@ from celery import Celery
 from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyHeader
 from sqlalchemy.orm import Session
-from starlette.concurrency import run_in_threadpool
 
-from api.db import get_sessionmaker, session_scope
+from api.db import get_sessionmaker
 from api.keycache import KeyCache
 from api.models import ApiKey
 from api.settings import Settings
@@ -61,19 +60,18 @@ CeleryDep = Annotated[Celery, Depends(get_celery)]
 
 def _lookup(request: Request, key: str) -> ApiKey | None:
     cache: KeyCache = request.app.state.key_cache
-    with session_scope(request.app.state.settings.resolved_database_url) as session:
-        return cache.lookup(session, key)
+    return cache.get(key) or cache.lookup(request.app.state.loop_reader, key)
 
 
 async def current_key(request: Request, key: Annotated[str | None, Security(api_key_header)] = None) -> ApiKey:
     """The key in the X-API-Key header; 401 when missing, unknown or revoked. Found keys are cached for
-    ``key_cache_seconds``; the lookup holds no connection once it returns."""
+    ``key_cache_seconds``; a lookup is one indexed read on the event loop (``KeyCache.lookup``)."""
     if not key:
         raise HTTPException(401, "missing API key: send it in the X-API-Key header",
                             headers={"WWW-Authenticate": "X-API-Key"})
     if len(key) > 200:
         raise HTTPException(401, "unknown or revoked API key", headers={"WWW-Authenticate": "X-API-Key"})
-    row = request.app.state.key_cache.get(key) or await run_in_threadpool(_lookup, request, key)
+    row = _lookup(request, key)
     if row is None:
         raise HTTPException(401, "unknown or revoked API key", headers={"WWW-Authenticate": "X-API-Key"})
     return row
@@ -83,7 +81,7 @@ async def optional_key(request: Request, key: Annotated[str | None, Security(api
     """The calling key when a valid one is sent, else None (for pages that show more to a key holder)."""
     if not key or len(key) > 200:
         return None
-    return request.app.state.key_cache.get(key) or await run_in_threadpool(_lookup, request, key)
+    return _lookup(request, key)
 
 
 CurrentKey = Annotated[ApiKey, Depends(current_key)]

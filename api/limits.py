@@ -10,7 +10,7 @@ import math
 from typing import Any
 
 from fastapi import HTTPException
-from sqlalchemy import func, select
+from sqlalchemy import Row, Select, func, select
 from sqlalchemy.orm import Session
 
 from api.models import Asset, Job
@@ -29,7 +29,7 @@ def output_frames(motion_info: dict[str, Any], options: RetargetOptions) -> int 
     return int(math.floor((span - 1) / float(fps) * out_fps + 1e-9)) + 1
 
 
-def check_job_size(motion: Asset, target: Asset, options: RetargetOptions, settings: Settings) -> None:
+def check_job_size(motion: Asset | Row[Any], target: Asset | Row[Any], options: RetargetOptions, settings: Settings) -> None:
     """422 when output frames x target vertices is over ``max_job_frame_vertices``."""
     frames = output_frames(motion.info or {}, options)
     vertices = (target.info or {}).get("vertices")
@@ -46,12 +46,22 @@ def check_job_size(motion: Asset, target: Asset, options: RetargetOptions, setti
             "choose a shorter frame range (frame_start/frame_end) or a lower fps")
 
 
-def check_active_jobs(session: Session, owner_id: str, adding: int, settings: Settings) -> None:
-    """429 when the key would have more than ``max_active_jobs_per_key`` queued or running jobs. Counts at most
-    quota + 1 rows, so the check costs the same however many jobs a key has queued."""
-    quota = settings.max_active_jobs_per_key
+def active_jobs_query(owner_id: Any, quota: int) -> Select[Any]:
+    """The count of a key's queued and running jobs, at most quota + 1 of them (``owner_id``: a value or a bind
+    parameter), so it costs the same however many jobs a key has queued."""
     capped = select(Job.id).where(Job.owner_id == owner_id, Job.status.in_(("queued", "running"))).limit(quota + 1)
-    active = session.scalar(select(func.count()).select_from(capped.subquery())) or 0
+    return select(func.count()).select_from(capped.subquery())
+
+
+def check_active_jobs(session: Session, owner_id: str, adding: int, settings: Settings) -> None:
+    """429 when the key would have more than ``max_active_jobs_per_key`` queued or running jobs."""
+    active = session.scalar(active_jobs_query(owner_id, settings.max_active_jobs_per_key)) or 0
+    refuse_over_quota(active, adding, settings)
+
+
+def refuse_over_quota(active: int, adding: int, settings: Settings) -> None:
+    """429 when ``active`` jobs (counted by :func:`active_jobs_query`) plus ``adding`` pass the quota."""
+    quota = settings.max_active_jobs_per_key
     if active + adding > quota:
         shown = f"{active}" if active <= quota else f"more than {quota}"
         raise HTTPException(

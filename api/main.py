@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -14,7 +15,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
 from api import contract
-from api.db import configure_pool
+from api.db import LoopReader, configure_pool
 from api.keycache import KeyCache
 from api.queue import make_celery
 from api.routes import batches, characters, health, jobs, motions, reviews
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
+        if settings.gil_switch_interval_seconds > 0:
+            sys.setswitchinterval(settings.gil_switch_interval_seconds)
         marker = None
         if settings.sent_mark_interval_seconds > 0:
             marker = app.state.sent_marker = SentMarker(settings.resolved_database_url,
@@ -63,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         if marker is not None:
             marker.stop()
+        app.state.loop_reader.close()
 
     app = FastAPI(
         lifespan=lifespan,
@@ -83,6 +87,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.storage = storage
     app.state.key_cache = KeyCache(settings.key_cache_seconds)
+    app.state.loop_reader = LoopReader(settings.resolved_database_url)
     app.state.upload_slots = asyncio.Semaphore(settings.max_concurrent_uploads)
     app.state.celery = make_celery(settings, main="retarget-api")
     if settings.cors_origins:

@@ -13,10 +13,14 @@ import logging
 import threading
 import time
 
-from sqlalchemy import update
+from sqlalchemy import bindparam, update
 
-from api.db import session_scope, utcnow, write_lock
+from api.db import get_engine, utcnow, write_lock
 from api.models import Job
+
+_JOBS = Job.__table__
+_MARK = (update(Job).where(_JOBS.c.id == bindparam("run_id"), _JOBS.c.attempt == bindparam("run_attempt"),
+                             _JOBS.c.sent_at.is_(None)).values(sent_at=bindparam("now")))
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +53,9 @@ class SentMarker:
                 return
             now = utcnow()
             try:
-                with write_lock(self.url), session_scope(self.url) as s:
-                    for job_id, attempt in runs:
-                        s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt,
-                                                    Job.sent_at.is_(None)).values(sent_at=now))
+                with write_lock(self.url), get_engine(self.url).begin() as conn:  # one executemany
+                    conn.execute(_MARK, [{"run_id": job_id, "run_attempt": attempt, "now": now}
+                                         for job_id, attempt in runs])
             except Exception:  # the reaper re-sends what stays unmarked
                 log.exception("could not record sent_at of %d jobs", len(runs))
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
+from typing import Any
+
+from sqlalchemy import Row
 
 from api.models import Asset, Batch, Job, WebhookDelivery
 from api.schemas import FINISHED, AssetOut, BatchOut, JobOut, Timings, WebhookState
@@ -51,8 +54,10 @@ def asset_out(asset: Asset, base: str = "") -> AssetOut:
     )
 
 
-def job_out(job: Job, delivery: WebhookDelivery | None = None, base: str = "", note: str | None = None) -> JobOut:
-    """The public view of a job row; ``note`` replaces the row's own note (e.g. no worker serves its queue)."""
+def job_out(job: Job | Row[Any], delivery: WebhookDelivery | Row[Any] | None = None, base: str = "",
+            note: str | None = None) -> JobOut:
+    """The public view of a job row (an ORM object or a row of the jobs table, with its newest webhook delivery);
+    ``note`` replaces the row's own note (e.g. no worker serves its queue)."""
     url = f"{base}/v1/jobs/{job.id}"
     results = None
     if job.status == "succeeded" and job.outputs:

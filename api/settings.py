@@ -43,13 +43,22 @@ class Settings(BaseSettings):
     broker_polling_interval_seconds: float = Field(
         default=0.2, gt=0, description="How often a worker polls the SQLite broker (embedded mode only)"
     )
-    db_pool_size: int = Field(default=10, ge=1, description="Database connections each process keeps open")
+    db_pool_size: int = Field(
+        default=24, ge=1, description="Database connections each process keeps open (at least api_threads: a "
+        "connection opened past the pool size is closed again when returned, and under load one would be opened "
+        "and closed for nearly every request)"
+    )
     db_max_overflow: int = Field(
-        default=30, ge=0, description="Extra connections a process may open under load (pool size + overflow "
+        default=16, ge=0, description="Extra connections a process may open under load (pool size + overflow "
         "must be at least api_threads)"
     )
     db_pool_timeout_seconds: float = Field(default=10.0, gt=0, description="Longest wait for a free connection")
     api_threads: int = Field(default=24, ge=1, description="Threads of an API process that run blocking work")
+    gil_switch_interval_seconds: float = Field(
+        default=0.001, ge=0, description="Python's thread switch interval in an API process (sys.setswitchinterval; "
+        "0: leave Python's 0.005). A busy event loop hands the interpreter lock to a waiting thread only this "
+        "often, and a submission's thread needs it after each database or broker round trip"
+    )
 
     # Uploads
     max_upload_bytes: int = Field(default=200 * 1024 * 1024, gt=0, description="Largest accepted upload")

@@ -7,20 +7,20 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel
-from sqlalchemy import func, select
+from sqlalchemy import Row, bindparam, func, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.callbacks import CallbackRefused, check_url
-from api.db import session_scope, write_lock
+from api.db import LoopReader, get_engine, session_scope, write_lock
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
-from api.limits import check_active_jobs, check_job_size
+from api.limits import active_jobs_query, check_job_size, refuse_over_quota
 from api.livequeues import waiting_note
-from api.models import ApiKey, Asset, Job, WebhookDelivery, new_id
+from api.models import ApiKey, Asset, IdempotencyRecord, Job, WebhookDelivery, new_id
 from api.pages import MAX_QUERY_INT, page_bounds
 from api.routing import SessionRoute
 from api.schemas import ErrorOut, JobCreate, JobOut, JobStatus, Page
@@ -32,18 +32,29 @@ from retarget_core.options import RetargetOptions
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=SessionRoute)
 
+_JOBS = Job.__table__
+_DELIVERIES = WebhookDelivery.__table__
+_JOB_BY_ID = select(_JOBS).where(_JOBS.c.id == bindparam("job_id"))
+_DELIVERIES_OF_JOB = (select(_DELIVERIES).where(_DELIVERIES.c.job_id == bindparam("job_id"))
+                      .order_by(_DELIVERIES.c.created_at))
+
 
 def resolve_input(session: Session, key: ApiKey, field: str, kind: str, asset_id: str) -> tuple[Asset, str]:
     """The asset named in a request field and the reference the worker reads; 422 when it is not usable."""
     asset = session.get(Asset, asset_id)
+    return asset, input_ref(asset, key, field, kind, asset_id)  # type: ignore[return-value]
+
+
+def input_ref(asset: Asset | Row[Any] | None, key: ApiKey, field: str, kind: str, asset_id: str) -> str:
+    """The reference the worker reads for an asset (an ORM object or a row); 422 when it is not usable."""
     if asset is None or asset.kind != kind or (asset.owner_id != key.id and asset.origin != "builtin"):
         raise HTTPException(422, f"{field}: no {kind} with id {asset_id!r}")
     if asset.origin == "builtin":
         preset = (asset.params or {}).get("preset") or asset.id.removeprefix("builtin:")
-        return asset, f"builtin:{preset}"
+        return f"builtin:{preset}"
     if not asset.sha256 or not asset.format:
         raise HTTPException(422, f"{field}: {kind} {asset_id!r} has no file")
-    return asset, Storage.blob_ref(asset.sha256, asset.format)
+    return Storage.blob_ref(asset.sha256, asset.format)
 
 
 def check_callback(callback_url: Any, settings: Settings) -> str | None:
@@ -100,7 +111,7 @@ def latest_deliveries(session: Session, job_ids: list[str]) -> dict[str, Webhook
     return {d.job_id: d for d in rows}
 
 
-def note_for(job: Job, settings: Settings) -> str | None:
+def note_for(job: Job | Row[Any], settings: Settings) -> str | None:
     """The job's note, or for a queued job on a queue no live worker serves, a note saying so."""
     if job.status == "queued" and not job.note:
         return waiting_note(job.queue, settings)
@@ -118,29 +129,90 @@ def json_response(model: BaseModel, status_code: int = 200, headers: dict[str, s
                     headers=headers)
 
 
-def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, idem: str | None,
-                marker: SentMarker | None = None) -> tuple[JobOut, bool]:
+def _replay_race(settings: Settings, key: ApiKey, idem: str | None, scope: str, fp: str,
+                 error: IntegrityError) -> JobOut:
+    """After an IntegrityError: the job a concurrent request with the same Idempotency-Key made."""
+    if not idem:
+        raise error
+    with session_scope(settings.resolved_database_url) as s:
+        existing = idempotency.find(s, key.id, idem, scope, fp)
+        if existing is None:
+            raise error
+        return out(s, find_job(s, key, existing), settings)
+
+
+_ASSETS = Asset.__table__
+_IDEM = IdempotencyRecord.__table__
+_IDEM_BY_KEY = select(_IDEM).where(_IDEM.c.owner_id == bindparam("owner_id"), _IDEM.c.key == bindparam("key"))
+_INSERT_JOB = insert(Job).returning(*_JOBS.c)
+_INSERT_IDEM = insert(IdempotencyRecord)
+_INPUTS: dict[int, Any] = {}
+
+
+def _inputs_statement(quota: int) -> Any:
+    """The named assets, each row with the key's count of active jobs (at most quota + 1): one round trip."""
+    found = _INPUTS.get(quota)
+    if found is None:
+        active = active_jobs_query(bindparam("owner_id"), quota).scalar_subquery().label("active_jobs")
+        found = _INPUTS[quota] = select(_ASSETS, active).where(_ASSETS.c.id.in_(bindparam("ids", expanding=True)))
+    return found
+
+
+def _prepare_job(reader: LoopReader, settings: Settings, key: ApiKey, body: JobCreate, idem: str | None,
+                 scope: str, fp: str) -> tuple[dict[str, Any] | None, JobOut | None]:
+    """The reads and checks of a submission, made on the event loop (reads never wait for a lock): the values
+    of the job row to insert, or the job an earlier request with the same Idempotency-Key made."""
+    if idem:
+        records = reader.rows(_IDEM_BY_KEY, {"owner_id": key.id, "key": idem})
+        if records:
+            record = records[0]
+            if record.scope != scope or record.fingerprint != fp:
+                raise HTTPException(422, f"the Idempotency-Key {idem[:80]!r} was already used for a different "
+                                         f"request ({record.scope}); use a new key for a new request")
+            return None, read_job(reader, settings, key, record.resource_id)
+    quota = settings.max_active_jobs_per_key
+    ids = [i for i in (body.motion_id, body.target_character_id, body.source_character_id) if i]
+    rows = reader.rows(_inputs_statement(quota), {"owner_id": key.id, "ids": ids})
+    if rows:
+        active = int(rows[0].active_jobs or 0)
+    else:
+        active = int(reader.rows(select(active_jobs_query(key.id, quota).scalar_subquery()))[0][0] or 0)
+    refuse_over_quota(active, 1, settings)
+    assets = {row.id: row for row in rows}
+    motion = assets.get(body.motion_id)
+    target = assets.get(body.target_character_id)
+    motion_ref = input_ref(motion, key, "motion_id", "motion", body.motion_id)
+    target_ref = input_ref(target, key, "target_character_id", "character", body.target_character_id)
+    source_ref = None
+    if body.source_character_id:
+        source_ref = input_ref(assets.get(body.source_character_id), key, "source_character_id", "character",
+                               body.source_character_id)
+    check_job_size(motion, target, body.options, settings)  # type: ignore[arg-type]
+    return {
+        "id": new_id("job"), "owner_id": key.id, "batch_id": None, "motion_id": body.motion_id,
+        "target_character_id": body.target_character_id, "source_character_id": body.source_character_id,
+        "motion_ref": motion_ref, "target_ref": target_ref, "source_ref": source_ref,
+        "options": body.options.model_dump(mode="json"), "queue": body.queue or settings.default_queue,
+        "callback_url": check_callback(body.callback_url, settings), "status": "queued", "sent_at": None,
+    }, None
+
+
+def _insert_job(settings: Settings, celery: Any, key: ApiKey, values: dict[str, Any], idem: str | None,
+                scope: str, fp: str, marker: SentMarker | None) -> tuple[JobOut, bool]:
+    """The write of a submission (in a thread): the job row and its Idempotency-Key record in one transaction,
+    then the send."""
     url = settings.resolved_database_url
-    scope, fp = "POST /v1/jobs", fingerprint(body.model_dump_json())
     try:
-        with session_scope(url) as s:
-            existing = idempotency.find(s, key.id, idem, scope, fp)
-            if existing:
-                return out(s, find_job(s, key, existing), settings), True
-            check_active_jobs(s, key.id, 1, settings)
-            job = new_job(s, key, settings, body.motion_id, body.target_character_id, body.source_character_id,
-                          body.options, body.callback_url, body.queue)
-            idempotency.remember(s, key.id, idem, scope, fp, job.id)
-            with write_lock(url):
-                s.commit()
-    except IntegrityError:
-        if not idem:
-            raise
-        with session_scope(url) as s:  # the same key won by a concurrent request
-            existing = idempotency.find(s, key.id, idem, scope, fp)
-            if existing is None:
-                raise
-            return out(s, find_job(s, key, existing), settings), True
+        with write_lock(url), get_engine(url).connect() as conn:
+            if idem:
+                with conn.begin():
+                    job = conn.execute(_INSERT_JOB, values).one()
+                    conn.execute(_INSERT_IDEM, {"owner_id": key.id, "key": idem, "scope": scope, "fingerprint": fp,
+                                                "resource_id": job.id})
+            else:  # one statement: autocommit spares PostgreSQL's BEGIN and COMMIT round trips
+                job = conn.execution_options(isolation_level="AUTOCOMMIT").execute(_INSERT_JOB, values).one()
+    except IntegrityError as exc:
+        return _replay_race(settings, key, idem, scope, fp, exc), True
     send_and_mark(url, celery, [(job.id, job.attempt, job.queue)], marker)
     return job_out(job, None, note=note_for(job, settings)), False
 
@@ -159,8 +231,15 @@ def _create_job(settings: Settings, celery: Any, key: ApiKey, body: JobCreate, i
 )
 async def create_job(request: Request, body: JobCreate, key: CurrentKey, settings: SettingsDep, celery: CeleryDep,
                      idempotency_key: IdempotencyKey = None) -> Response:
-    job, replayed = await run_in_threadpool(_create_job, settings, celery, key, body, idempotency_key,
-                                            getattr(request.app.state, "sent_marker", None))
+    # Reads and checks on the event loop, the write (and the send) in a thread.
+    scope, fp = "POST /v1/jobs", fingerprint(body.model_dump_json())
+    values, replay = _prepare_job(request.app.state.loop_reader, settings, key, body, idempotency_key, scope, fp)
+    if values is None:
+        assert replay is not None
+        job, replayed = replay, True
+    else:
+        job, replayed = await run_in_threadpool(_insert_job, settings, celery, key, values, idempotency_key, scope,
+                                                fp, getattr(request.app.state, "sent_marker", None))
     headers = {"Location": f"/v1/jobs/{job.id}"}
     if replayed:
         headers[REPLAYED_HEADER] = "true"
@@ -195,14 +274,28 @@ def list_jobs(
     )
 
 
-def _get_job(settings: Settings, key: ApiKey, job_id: str) -> JobOut:
-    with session_scope(settings.resolved_database_url) as s:
-        return out(s, find_job(s, key, job_id), settings)
+
+
+def read_job(reader: LoopReader, settings: Settings, key: ApiKey, job_id: str) -> JobOut:
+    """A job as GET answers it, read on the event loop as row tuples (no ORM objects, no session)."""
+    rows = reader.rows(_JOB_BY_ID, {"job_id": job_id})
+    job = rows[0] if rows else None
+    if job is None or job.owner_id != key.id:
+        raise HTTPException(404, f"job {job_id!r} not found")
+    delivery = None
+    if job.callback_url:
+        deliveries = reader.rows(_DELIVERIES_OF_JOB, {"job_id": job_id})
+        delivery = deliveries[-1] if deliveries else None
+    note = job.note
+    if job.status == "queued" and not note:
+        note = waiting_note(job.queue, settings, reader)
+    return job_out(job, delivery, note=note)
 
 
 @router.get("/{job_id}", response_model=JobOut, summary="Get a job", responses={404: {"model": ErrorOut}})
-async def get_job(job_id: str, key: CurrentKey, settings: SettingsDep) -> Response:
-    return json_response(await run_in_threadpool(_get_job, settings, key, job_id))
+async def get_job(request: Request, job_id: str, key: CurrentKey) -> Response:
+    state = request.app.state
+    return json_response(read_job(state.loop_reader, state.settings, key, job_id))
 
 
 @router.post(
