@@ -94,6 +94,9 @@ def revoke_link(job_id: str, link_id: str, session: SessionDep, key: CurrentKey)
     if link is None or link.job_id != job_id:
         raise HTTPException(404, f"review link {link_id!r} not found")
     link.revoked_at = link.revoked_at or utcnow()
+    # Committed before the 204 goes out: a revocation the client was told about must already hold for the next
+    # request, whichever thread and connection serve it.
+    session.commit()
     return Response(status_code=204)
 
 
