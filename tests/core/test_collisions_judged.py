@@ -1,5 +1,6 @@
 """The collision stage measures the judge's pairs only, holds the head in the torso at the input's depth, and
-pulls end effectors toward the source's positions relative to the hips (small built cases)."""
+pulls end effectors toward the source's positions relative to the hips, less so for a hand in contact (small
+built cases)."""
 
 from __future__ import annotations
 
@@ -81,3 +82,19 @@ def test_end_effector_targets_follow_the_source_relative_to_the_hips() -> None:
     assert torch.allclose(full - g_in[:, 0], g_src[:, hand] - g_src[:, 0], atol=1e-5)
     half = _ee_targets(ctx, g_in, frames, ["LeftHand"], 0.5)[:, 0]
     assert torch.allclose(half, 0.5 * (full + g_in[:, hand]), atol=1e-5)
+
+
+def test_a_hand_in_contact_is_placed_by_its_contact_not_its_end_effector_target() -> None:
+    from retarget_core.refine.collision_check import ContactInstances
+    from retarget_core.refine.collisions import CollisionParams, _ee_weights
+
+    ch = _arm_boxes()
+    ctx = _context(ch, _pushed_in(ch, 0.02, frames=5))
+    hand = ctx.parts.find("LeftHand")
+    contacts = ContactInstances(torch.tensor([1, 2]), torch.tensor([hand, hand]), torch.tensor([1, 1]))
+    params = CollisionParams()
+    w = _ee_weights(ctx, contacts, torch.tensor([0, 2, 4]), ["LeftHand", "Head"], params)
+    assert w.shape == (3, 2)
+    assert w[:, 1].eq(params.end_effectors["Head"]).all()
+    expected = [params.end_effectors["LeftHand"], params.contact_ee_weight, params.end_effectors["LeftHand"]]
+    assert torch.allclose(w[:, 0], torch.tensor(expected))
