@@ -18,8 +18,8 @@ Method (an optimisation resolver on the whole clip at once; paper 2's learned pe
    closest posed triangle; contacts (ctx.constraints) as targets: a touching hand is kept out of the part it
    touches like any collision (the judge counts a sunk hand as penetration) and pulled within
    ``contact_gap_m`` of its surface; hand, foot and head positions relative to the hips kept near the source's
-   (scaled by the heights; the judge's end-effector error), so an arm leaves the torso by turning the elbow out
-   rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
+   (scaled by the heights; the judge's end-effector error; weakly for a hand on its contact frames, which its
+   contact places), so an arm leaves the torso by turning the elbow out rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
    Only the pairs the judge tests are measured and resolved (:data:`collision_check.JUDGED_TESTS`: arm and leg
    vertices in the other parts; no torso vertices), and the head inside the torso is held at the input's depth,
    not pushed out (reported apart by the judge; turning the neck and spine out of it moved the head).
