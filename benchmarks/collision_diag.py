@@ -25,7 +25,7 @@ from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measure
 from retarget_core.metrics.acceptance_body import PARTS, acceptance_body
 from retarget_core.pipeline import prepare, refine_context
 from retarget_core.refine import collisions
-from retarget_core.refine.collision_check import check_frames, contact_instances
+from retarget_core.refine.collision_check import check_frames, contact_instances, judged_allowed
 from retarget_core.resample import resample
 
 
@@ -74,7 +74,7 @@ def main() -> None:
     contacts = contact_instances(sdf, ctx.constraints)
     f_n = prepared.before.num_frames
     chk = check_frames(ch, sdf, outcome.motion.rotations.float(), outcome.motion.translations.float(), torch.arange(f_n),
-                       contacts, 0.003 / scale)  # fmt: skip
+                       contacts, 0.003 / scale, allowed=judged_allowed(sdf))  # fmt: skip
     print(f"{Path(a.clip).stem} x {ch.name}: pen %v {fb.pen_percent:.3f} -> {fa.pen_percent:.3f}, frames>1cm "
           f"{fb.frames_over_1cm_percent:.1f} -> {fa.frames_over_1cm_percent:.1f}, contact pres. {fb.contact_preservation} -> "
           f"{fa.contact_preservation}, EE {fb.end_effector_error_cm:.2f} -> {fa.end_effector_error_cm:.2f}, "

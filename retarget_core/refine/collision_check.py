@@ -14,6 +14,33 @@ from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints
 from retarget_core.energy.sdf import PairSamples, PartSDF, sample_pairs, segment_matrices, vertex_depths
 
+JUDGED_TESTS: dict[str, tuple[str, ...]] = {
+    "left_arm": ("torso", "head", "right_arm", "left_leg", "right_leg"),
+    "right_arm": ("torso", "head", "left_arm", "left_leg", "right_leg"),
+    "left_leg": ("right_leg", "left_arm", "right_arm"),
+    "right_leg": ("left_leg", "left_arm", "right_arm"),
+    "head": ("torso",),
+}
+"""ACCEPTANCE.md's tests, vertex cluster -> clusters it is tested against (the head in the torso is reported apart;
+torso vertices are never tested): the only pairs the collision stage measures and resolves."""
+
+
+def judged_cluster_table(tests: dict[str, tuple[str, ...]] | None = None) -> Tensor:
+    """``(C, C)`` bool over :data:`CLUSTERS`: vertex cluster x segment cluster tested (default :data:`JUDGED_TESTS`)."""
+    tests = JUDGED_TESTS if tests is None else tests
+    out = torch.zeros(len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
+    for a, bs in tests.items():
+        for b in bs:
+            out[CLUSTERS.index(a), CLUSTERS.index(b)] = True
+    return out
+
+
+def judged_allowed(sdf: PartSDF, tests: dict[str, tuple[str, ...]] | None = None) -> Tensor:
+    """``(S, S)`` bool: ``sdf.allowed`` (vertex segment x segment) restricted to the judged cluster pairs."""
+    cluster = torch.tensor(sdf.parts.cluster, dtype=torch.long)
+    table = judged_cluster_table(tests)
+    return sdf.allowed & table[cluster[:, None], cluster[None, :]]
+
 
 @dataclass
 class ContactInstances:
@@ -59,9 +86,11 @@ class FrameCheck:
 
 
 def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translations: Tensor, frames: Tensor,
-                 contacts: ContactInstances, tolerance: float, chunk: int = 64) -> FrameCheck:  # fmt: skip
+                 contacts: ContactInstances, tolerance: float, chunk: int = 64,
+                 allowed: Tensor | None = None) -> FrameCheck:  # fmt: skip
     """Pose all vertices at clip ``frames (n,)`` of the local ``rotations (F, J, 4)`` / ``translations (F, J, 3)``
-    and measure them (no gradients)."""
+    and measure them (no gradients); ``allowed (S, S)``: the segment pairs measured (default ``sdf.allowed``; a
+    contact's hand and touched part must be among them)."""
     parts = sdf.parts
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
     n = len(frames)
@@ -79,7 +108,7 @@ def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translat
             grot, gpos = kinematics.forward_kinematics(character.skeleton.parents, rotations[fr], translations[fr])
             verts = character.pose_vertices(grot, gpos)
             mats = segment_matrices(character, parts, grot, gpos)
-            samples = sample_pairs(sdf, verts, mats)
+            samples = sample_pairs(sdf, verts, mats, allowed)
             d = vertex_depths(sdf, samples, len(fr))
             depth[s : s + len(fr)] = d
             vol[s : s + len(fr)] = (d * area).sum(-1)
@@ -106,4 +135,5 @@ def _contact_distance(sdf: PartSDF, samples: PairSamples, contacts: ContactInsta
     return table.index_select(0, q)
 
 
-__all__ = ["ContactInstances", "FrameCheck", "check_frames", "contact_instances"]
+__all__ = ["JUDGED_TESTS", "ContactInstances", "FrameCheck", "check_frames", "contact_instances", "judged_allowed",
+           "judged_cluster_table"]

@@ -1,0 +1,100 @@
+"""The collision stage measures the judge's pairs only, holds the head in the torso at the input's depth, and
+pulls end effectors toward the source's positions relative to the hips, less so for a hand in contact (small
+built cases)."""
+
+from __future__ import annotations
+
+import roma
+import torch
+
+from retarget_core import kinematics
+from retarget_core.body_parts import CLUSTERS
+from retarget_core.motion import Motion
+from retarget_core.refine.collision_check import judged_allowed, judged_cluster_table
+from retarget_core.refine.collision_energy import candidate_triples, penetration_energy
+from retarget_core.refine.collisions import _ee_targets
+from retarget_core.refine.point_poser import PointPoser
+from tests.core.test_collisions import _arm_boxes, _context, _pushed_in
+
+
+def test_judged_table_tests_limbs_and_the_head_never_the_torso() -> None:
+    t = judged_cluster_table()
+    c = CLUSTERS.index
+    assert not bool(t[c("torso")].any())
+    assert (
+        bool(t[c("left_arm"), c("torso")])
+        and bool(t[c("left_arm"), c("right_arm")])
+        and bool(t[c("left_arm"), c("head")])
+    )
+    assert bool(t[c("left_leg"), c("right_leg")]) and bool(t[c("left_leg"), c("left_arm")])
+    assert not bool(t[c("left_leg"), c("torso")]) and not bool(t[c("head"), c("left_arm")])
+    assert bool(t[c("head"), c("torso")])
+
+
+def test_judged_allowed_keeps_the_hand_in_the_torso_and_drops_the_torso_in_the_hand() -> None:
+    ch = _arm_boxes()
+    ctx = _context(ch, _pushed_in(ch, 0.02, frames=2))
+    parts, allowed = ctx.parts, judged_allowed(ctx.sdf)
+    hand, hips = parts.find("LeftHand"), parts.find("Hips")
+    assert bool(ctx.sdf.allowed[hips, hand]) and not bool(allowed[hips, hand])
+    assert bool(allowed[hand, hips]) == bool(ctx.sdf.allowed[hand, hips]) is True
+    assert not bool((allowed & ~ctx.sdf.allowed).any())
+
+
+def _penetration_at_input(hold: torch.Tensor | None) -> float:
+    ch = _arm_boxes()
+    before = _pushed_in(ch, 0.02, frames=3)
+    ctx = _context(ch, before)
+    points = torch.arange(ch.num_vertices)
+    poser = PointPoser(ch, points, ctx.parts.joints)
+    local = roma.unitquat_to_rotmat(before.rotations.float())
+    with torch.no_grad():
+        posed, seg_mats, _ = poser(local, before.translations.float())
+    exempt = torch.zeros(3, ctx.parts.num_parts, len(CLUSTERS), dtype=torch.bool)
+    triples = candidate_triples(ctx.sdf, points, posed, seg_mats, torch.arange(3), exempt, ctx.sdf.allowed, 0.05,
+                                0.001, -0.001, hold=hold)  # fmt: skip
+    return float(penetration_energy(ctx.sdf, triples, posed, seg_mats, 1.0))
+
+
+def test_a_held_pair_costs_nothing_at_the_input_depth() -> None:
+    hold = torch.zeros(len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
+    assert _penetration_at_input(hold) > 1.0  # 2 cm deep: pushed out
+    hold[CLUSTERS.index("left_arm"), CLUSTERS.index("torso")] = True
+    hold[CLUSTERS.index("torso"), CLUSTERS.index("left_arm")] = True
+    assert _penetration_at_input(hold) < 1e-6  # held: only deeper would cost
+
+
+def test_end_effector_targets_follow_the_source_relative_to_the_hips() -> None:
+    ch = _arm_boxes()
+    before = _pushed_in(ch, 0.02, frames=4)
+    src_rot = before.rotations.clone()
+    src_rot[:, 2] = roma.rotvec_to_unitquat(torch.tensor([0.0, 0.0, 0.3]))  # the source's arm higher
+    src_tr = before.translations.clone()
+    src_tr[:, 0] += torch.tensor([1.0, 0.0, 0.5])  # elsewhere in the world: only hips-relative positions count
+    ctx = _context(ch, before)
+    ctx.source_view = Motion(ch.skeleton, 30.0, src_rot, src_tr, "src")
+    frames = torch.tensor([1, 3])
+    _, g_in = kinematics.forward_kinematics(ch.skeleton.parents, before.rotations[frames], before.translations[frames])
+    _, g_src = kinematics.forward_kinematics(ch.skeleton.parents, src_rot[frames], src_tr[frames])
+    hand = ctx.target_mapping.joints["LeftHand"]
+    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], 0.0)[:, 0], g_in[:, hand])
+    full = _ee_targets(ctx, g_in, frames, ["LeftHand"], 1.0)[:, 0]
+    assert torch.allclose(full - g_in[:, 0], g_src[:, hand] - g_src[:, 0], atol=1e-5)
+    half = _ee_targets(ctx, g_in, frames, ["LeftHand"], 0.5)[:, 0]
+    assert torch.allclose(half, 0.5 * (full + g_in[:, hand]), atol=1e-5)
+
+
+def test_a_hand_in_contact_is_placed_by_its_contact_not_its_end_effector_target() -> None:
+    from retarget_core.refine.collision_check import ContactInstances
+    from retarget_core.refine.collisions import CollisionParams, _ee_weights
+
+    ch = _arm_boxes()
+    ctx = _context(ch, _pushed_in(ch, 0.02, frames=5))
+    hand = ctx.parts.find("LeftHand")
+    contacts = ContactInstances(torch.tensor([1, 2]), torch.tensor([hand, hand]), torch.tensor([1, 1]))
+    params = CollisionParams()
+    w = _ee_weights(ctx, contacts, torch.tensor([0, 2, 4]), ["LeftHand", "Head"], params)
+    assert w.shape == (3, 2)
+    assert w[:, 1].eq(params.end_effectors["Head"]).all()
+    expected = [params.end_effectors["LeftHand"], params.contact_ee_weight, params.end_effectors["LeftHand"]]
+    assert torch.allclose(w[:, 0], torch.tensor(expected))
