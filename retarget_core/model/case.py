@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
 from retarget_core.jobs import JobInputs
 from retarget_core.options import RetargetOptions
 from retarget_core.refine.context import RefineContext
@@ -21,15 +19,11 @@ def prepared_case(motion: Path, target: Path | str, max_frames: int | None = Non
 
 
 def context_from_prepared(prepared: Prepared, device: str = "cpu") -> RefineContext:
-    """The refinement context of a prepared job (same fields as the pipeline fills)."""
-    return RefineContext(
-        target=prepared.target.character, target_mapping=prepared.target.mapping,
-        parts=prepared.assets.parts, sdf=prepared.assets.sdf,
-        source_body=prepared.source_body.character, source_mapping=prepared.source_body.mapping,
-        source_view=prepared.source_view, self_contacts=prepared.contacts.self_contacts,
-        constraints=prepared.constraints, feet=prepared.target_feet, before=prepared.before,
-        options=prepared.inputs.options, device=torch.device(device),
-    )  # fmt: skip
+    """The refinement context of a prepared job, as :func:`retarget_core.pipeline.refine_context` builds it, on
+    ``device``."""
+    from retarget_core.pipeline import refine_context
+
+    return refine_context(prepared, prepared.inputs.options.model_copy(update={"device": device}))
 
 
 __all__ = ["context_from_prepared", "prepared_case"]
