@@ -17,9 +17,9 @@ Method (an optimisation resolver on the whole clip at once; paper 2's learned pe
    arm vertices inside (or within ``mesh_near_m`` of) the posed torso: squared distance to the plane of their
    closest posed triangle; contacts (ctx.constraints) as targets: a touching hand is kept out of the part it
    touches like any collision (the judge counts a sunk hand as penetration) and pulled within
-   ``contact_gap_m`` of its surface; hand, foot and head positions relative to the hips kept near the source's
+   ``contact_gap_m`` of its surface; hand and head positions relative to the hips kept near the source's
    (scaled by the heights; the judge's end-effector error; weakly for a hand on its contact frames, which its
-   contact places), so an arm leaves the torso by turning the elbow out rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
+   contact places) and the feet near the input's (on the floor; foot lock plants them), so an arm leaves the torso by turning the elbow out rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
    Only the pairs the judge tests are measured and resolved (:data:`collision_check.JUDGED_TESTS`: arm and leg
    vertices in the other parts; no torso vertices), and the head inside the torso is held at the input's depth,
    not pushed out (reported apart by the judge; turning the neck and spine out of it moved the head).
@@ -86,6 +86,12 @@ JOINT_STIFFNESS: dict[str, float] = {
 # (measured on bulky 002_06 and 007_06).
 END_EFFECTOR_WEIGHTS: dict[str, float] = {"LeftHand": 0.5, "RightHand": 0.5, "LeftFoot": 0.5, "RightFoot": 0.5, "Head": 0.5}
 
+# How far each end effector's target moves from the input's position toward the source's (relative to the hips,
+# scaled by the heights; see ``_ee_targets``). The feet stay at the input's: the copy placed them on the floor and
+# foot lock plants them; pulled toward the source's hips-relative positions they sank 1.4-1.8 cm into the floor
+# on the heavy and short held-out bodies (ground penetration of the stage alone, measured).
+END_EFFECTOR_PULL: dict[str, float] = {"LeftHand": 1.0, "RightHand": 1.0, "LeftFoot": 0.0, "RightFoot": 0.0, "Head": 1.0}
+
 
 CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
 
@@ -139,6 +145,9 @@ class CollisionParams:
     # the input's, not pushed out: the judge reports it apart, and turning the neck and spine out of it moved the
     # head 2-3 cm from the source's (end-effector error, measured on bulky 002_06: neck 21 deg on average)
     use_mesh: bool = True  # test arms against the posed torso and head meshes (the rigid SDFs miss the armpit)
+    w_ground: float = 20.0  # per cm^2 of a hand or foot point below the floor (y = 0; a foot no lower than the input)
+    ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell
+    ground_tolerance_m: float = 0.002  # frames with a hand or foot point this far below the floor are optimised
     w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
     w_pair: float = 1.0  # per cm^2 of a contact pair drifting apart beyond the allowance
     pair_allowance_m: float = 0.01  # a pair may separate this much freely (a sunk hand comes out to the surface)
@@ -146,10 +155,11 @@ class CollisionParams:
     w_smooth: float = 20.0  # per rad^2 of the knots' second difference
     joint_stiffness: dict[str, float] = field(default_factory=lambda: dict(JOINT_STIFFNESS))
     end_effectors: dict[str, float] = field(default_factory=lambda: dict(END_EFFECTOR_WEIGHTS))
-    ee_source_pull: float = 1.0  # end effectors are kept near (1 - pull) x the input's + pull x the source's
-    # positions relative to the hips, scaled by the heights: what the judge's end-effector error measures; the copy
-    # is 1-2 cm off them on other proportions, and pulled there the stage ends at or below the copy's error where
-    # the input's positions as targets ended 30-60 % above it (bulky 002_06, 007_06, weight 1, measured)
+    ee_source_pull: dict[str, float] = field(default_factory=lambda: dict(END_EFFECTOR_PULL))
+    # end effectors are kept near (1 - pull) x the input's + pull x the source's positions relative to the hips,
+    # scaled by the heights: what the judge's end-effector error measures; the copy is 1-2 cm off them on other
+    # proportions, and pulled there the stage ends at or below the copy's error where the input's positions as
+    # targets ended 30-60 % above it (hands and head; bulky 002_06, 007_06, weight 1, measured)
     contact_ee_weight: float = 0.05  # a hand's end-effector weight on frames it touches a part: the contact places
     # it (at 0.5 a hand sunk 3 cm into a belly came out by lifting the palm 1.8 cm off it, measured)
     trace: bool = False  # the report gets per-frame "trace": optimised frames and never-worse weights (diagnostics)
@@ -216,6 +226,46 @@ class _Terms:
     targets: ContactTargets
     pairs: ContactPairs
     mesh: MeshTerms
+    ground: GroundTerms
+
+
+@dataclass
+class GroundTerms:
+    """Hand and foot points kept above the floor: ``point (G,)`` indices into the poser's points, ``floor (Fa, G)``
+    the height (m) each may not go below on the optimised frames."""
+
+    point: Tensor
+    floor: Tensor
+
+
+GROUND_SEGMENTS: tuple[str, ...] = ("LeftHand", "RightHand", "LeftFoot", "RightFoot", "LeftToeBase", "RightToeBase")
+
+
+@dataclass
+class _Ground:
+    """Floor points of the clip: ``vertex (G,)`` character vertices, ``floor (F, G)`` their lowest allowed height
+    (0 for hands; the input's height where a foot is already below the floor), ``low (F,)`` the input's lowest."""
+
+    vertex: Tensor
+    floor: Tensor
+    low: Tensor
+
+
+def _ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: CollisionParams, scale: float) -> _Ground:
+    """The hands' and feet's floor points (:class:`_Ground`) on the input ``rot_in (F, J, 4)``, ``trans (F, J, 3)``.
+    The copy may put a hand through the floor (a bend to the floor on shorter legs), and the end-effector pull
+    toward the source's hips-relative positions can too (measured: 5-10 cm on the short held-out body, 002_06)."""
+    segs = [s for n in GROUND_SEGMENTS if (s := ctx.parts.find(n)) is not None]
+    if not segs:
+        e = torch.zeros(0, dtype=torch.long)
+        return _Ground(e, torch.zeros(len(rot_in), 0), torch.zeros(len(rot_in)))
+    pts = sentinel_vertices(ctx.sdf, ctx.target.vertices.float(), params.ground_cell_m / scale, segs)
+    poser = PointPoser(ctx.target, pts, ctx.parts.joints)
+    with torch.no_grad():
+        y = poser(roma.unitquat_to_rotmat(rot_in), trans)[0][..., 1]  # (F, G)
+    is_hand = torch.tensor([ctx.parts.names[int(p)].endswith("Hand") for p in ctx.parts.vertex_part[pts]])
+    floor = torch.where(is_hand[None], torch.zeros_like(y), torch.clamp(y, max=0.0))
+    return _Ground(pts, floor, y.amin(1) if y.shape[1] else torch.zeros(len(rot_in)))
 
 
 def _exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
@@ -252,10 +302,13 @@ def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Ten
 
 
 def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, params: CollisionParams, scale: float,
-                   fps: float = 30.0) -> Tensor:  # fmt: skip
-    """Frames to optimise: penetrating or in contact, dilated by the margin."""
+                   fps: float = 30.0, low: Tensor | None = None) -> Tensor:  # fmt: skip
+    """Frames to optimise: penetrating, in contact or with a hand or foot below the floor (``low (F,)``, m),
+    dilated by the margin."""
     marked = torch.zeros(frames, dtype=torch.bool)
     marked[check.frames[check.max_depth * scale > params.penetration_tolerance_m]] = True
+    if low is not None and len(low) == frames:
+        marked |= low * scale < -params.ground_tolerance_m
     if contacts.count:
         marked[contacts.frame] = True
     if not bool(marked.any()):
@@ -267,7 +320,8 @@ def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, p
 
 def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: ContactInstances, exempt: Tensor,
                  params: CollisionParams, scale: float, slack: float | Tensor, allowed: Tensor,
-                 hand_points: Tensor | None = None, mesh: MeshPairs | None = None) -> _Terms:  # fmt: skip
+                 hand_points: Tensor | None = None, mesh: MeshPairs | None = None,
+                 ground: _Ground | None = None) -> _Terms:  # fmt: skip
     """Poser, candidate triples (segment pairs of ``allowed (S, S)`` within ``slack`` (m, or per point) on the
     input pose) and contact targets of a point set."""
     poser = PointPoser(ctx.target, points, ctx.parts.joints)
@@ -285,17 +339,30 @@ def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: C
     if pairs.count:
         with torch.no_grad():
             pairs.input_distance = pair_distance(pairs, posed)
-    return _Terms(poser, triples, targets, pairs, _mesh_terms(ctx, mesh, prob.frames, points))
+    return _Terms(poser, triples, targets, pairs, _mesh_terms(ctx, mesh, prob.frames, points),
+                  _ground_terms(ctx, ground, prob.frames, points))
 
 
-def _ee_targets(ctx: RefineContext, gpos_in: Tensor, frames: Tensor, names: list[str], pull: float) -> Tensor:
+def _ground_terms(ctx: RefineContext, ground: _Ground | None, frames: Tensor, points: Tensor) -> GroundTerms:
+    """The floor points of ``ground`` that are among ``points`` (indices into them), on the optimised ``frames``."""
+    if ground is None or len(ground.vertex) == 0:
+        return GroundTerms(torch.zeros(0, dtype=torch.long), torch.zeros(len(frames), 0))
+    point_of = torch.full((ctx.target.num_vertices,), -1, dtype=torch.long)
+    point_of[points] = torch.arange(len(points))
+    idx = point_of[ground.vertex]
+    ok = idx >= 0
+    return GroundTerms(idx[ok], ground.floor[frames][:, ok])
+
+
+def _ee_targets(ctx: RefineContext, gpos_in: Tensor, frames: Tensor, names: list[str], pull: dict[str, float]) -> Tensor:
     """``(Fa, E, 3)`` end-effector targets at clip ``frames (Fa,)``: the input's positions ``gpos_in (Fa, J, 3)``,
-    moved by ``pull`` toward the source's (``ctx.source_view`` on its own body) relative to the hips, scaled by
-    the bodies' heights."""
+    moved by ``pull[name]`` (0 when absent) toward the source's (``ctx.source_view`` on its own body) relative to
+    the hips, scaled by the bodies' heights."""
     tm, sm = ctx.target_mapping.joints, ctx.source_mapping.joints
     ee_in = gpos_in[:, [tm[n] for n in names]]
     src = ctx.source_view
-    if pull <= 0.0 or "Hips" not in sm or any(n not in sm for n in names) or src.num_frames < int(frames.max()) + 1:
+    w = torch.tensor([pull.get(n, 0.0) for n in names])
+    if not bool((w > 0).any()) or "Hips" not in sm or any(n not in sm for n in names) or src.num_frames < int(frames.max()) + 1:
         return ee_in
     with torch.no_grad():
         _, g_src = kinematics.forward_kinematics(ctx.source_body.skeleton.parents, src.rotations[frames].float(),
@@ -303,7 +370,7 @@ def _ee_targets(ctx: RefineContext, gpos_in: Tensor, frames: Tensor, names: list
     k = ctx.target.height / ctx.source_body.height
     rel = (g_src[:, [sm[n] for n in names]] - g_src[:, sm["Hips"] : sm["Hips"] + 1]) * k
     target = gpos_in[:, tm["Hips"] : tm["Hips"] + 1] + rel
-    return ee_in + pull * (target - ee_in)
+    return ee_in + w[None, :, None] * (target - ee_in)
 
 
 def _ee_weights(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, names: list[str],
@@ -364,8 +431,8 @@ def _contact_pairs(ctx: RefineContext, frames: Tensor, points: Tensor) -> Contac
 
 def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     """``terms`` with a poser of only the points its triples and contact targets use (indices remapped)."""
-    t, pr, me = terms.targets, terms.pairs, terms.mesh
-    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j, me.point, me.tri.flatten()]))
+    t, pr, me, gr = terms.targets, terms.pairs, terms.mesh, terms.ground
+    used = torch.unique(torch.cat([g[2] for g in terms.triples.groups] + [t.point, pr.i, pr.j, me.point, me.tri.flatten(), gr.point]))
     remap = torch.full((len(terms.poser.points),), -1, dtype=torch.long)
     remap[used] = torch.arange(len(used))
     poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
@@ -373,7 +440,7 @@ def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
     mesh = MeshTerms(me.frame, remap[me.point], remap[me.tri], me.sign)
-    return _Terms(poser, TripleSet(groups), targets, pairs, mesh)
+    return _Terms(poser, TripleSet(groups), targets, pairs, mesh, GroundTerms(remap[gr.point], gr.floor))
 
 
 def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, params: CollisionParams,
@@ -388,6 +455,7 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
         "contact_pairs": params.w_pair * pair_energy(terms.pairs, posed, scale, params.pair_allowance_m / scale),
         "mesh": params.w_mesh * mesh_energy(terms.mesh, posed, scale, params.clearance_m / scale),
         "end_effector": (ee.pow(2).sum(-1) * prob.ee_weight).sum(),
+        "ground": params.w_ground * ((terms.ground.floor - posed[:, terms.ground.point, 1]).clamp(min=0.0) * (100.0 * scale)).pow(2).sum(),
         "identity": params.w_identity * (knots.pow(2).sum(-1) * prob.stiffness).sum(),
         "smooth": params.w_smooth * (knots[2:] - 2 * knots[1:-1] + knots[:-2]).pow(2).sum(),
     }
@@ -408,7 +476,8 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
             with torch.no_grad():
                 posed, seg_mats, _ = full_terms.poser(prob.local(knots), prob.trans)
             near = near_triples(ctx.sdf, full, posed, seg_mats, within)
-            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs, full_terms.mesh))
+            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs, full_terms.mesh,
+                                         full_terms.ground))  # fmt: skip
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
         for g in opt.param_groups:
@@ -465,7 +534,8 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     timings = {"check_before": time.process_time() - cpu0}
     ctx.report_progress(0.3)
     report: dict[str, Any] = {"method": "optimisation: B-spline rotation residuals on sentinel SDF energy"}
-    active = _active_frames(before, contacts, f_n, params, scale, motion.fps)
+    ground = _ground_points(ctx, rot_in, trans, params, scale) if params.w_ground > 0 else None
+    active = _active_frames(before, contacts, f_n, params, scale, motion.fps, ground.low if ground is not None else None)
     names = [n for n in params.joint_stiffness if n in ctx.target_mapping.joints]
     out_rot, iterations, terms = rot_in, 0, {}
     if len(active) and names:
@@ -491,10 +561,11 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             hands = contacts.hand.unique().tolist()
             contact_pts = torch.cat([contact_pts, sentinel_vertices(sdf, ch.vertices.float(), params.hand_cell_m / scale, hands)])
         mesh_pts = torch.cat([mesh_in.vertex, mesh_in.tri.flatten()]) if mesh_in is not None else contact_pts[:0]
-        points = torch.unique(torch.cat([sentinels, contact_pts, mesh_pts]))
+        ground_pts = ground.vertex if ground is not None else contact_pts[:0]
+        points = torch.unique(torch.cat([sentinels, contact_pts, mesh_pts, ground_pts]))
         coarse = prob.every(params.sentinel_frame_stride)
         terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale,
-                                allowed, mesh=mesh_in)  # fmt: skip
+                                allowed, mesh=mesh_in, ground=ground)  # fmt: skip
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
@@ -523,7 +594,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             points = torch.unique(torch.cat([points, extra]))
             slack = torch.where(is_sentinel[points], params.candidate_slack_m / scale, params.finish_slack_m / scale)
             terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack, allowed, hand_points,
-                                     mesh_in)  # fmt: skip
+                                     mesh_in, ground)  # fmt: skip
             report["finish_points"] = int(len(points))
             report["finish_triples"] = terms_fin.triples.count
             terms = _optimise(ctx, prob, terms_fin, knots, params.finish_iterations,
@@ -629,4 +700,4 @@ def run(ctx: RefineContext, motion: Motion) -> StageOutcome:
     return resolve(ctx, motion)
 
 
-__all__ = ["CONTACT_KEPT_M", "CollisionParams", "END_EFFECTOR_WEIGHTS", "JOINT_STIFFNESS", "resolve", "run"]
+__all__ = ["CONTACT_KEPT_M", "CollisionParams", "END_EFFECTOR_PULL", "END_EFFECTOR_WEIGHTS", "JOINT_STIFFNESS", "resolve", "run"]

@@ -207,6 +207,28 @@ def test_rest_pose_comes_out_unchanged(bulky: Character) -> None:
     assert torch.equal(out.motion.translations, before.translations)
 
 
+def _lowest(ch: Character, m: Motion, vertices: torch.Tensor) -> float:
+    grot, gpos = m.global_transforms()
+    return float(ch.pose_vertices(grot, gpos)[:, vertices, 1].min())
+
+
+def test_hand_through_the_floor_comes_up_and_the_feet_go_no_lower(bulky: Character) -> None:
+    """The whole body lowered until a hand is 3 cm into the floor (as a bend to the floor on shorter legs does):
+    the stage lifts the hands to the floor by turning the arms and leaves the feet no deeper than the input."""
+    sk, frames = bulky.skeleton, 6
+    parts = body_parts(bulky, mapping_by_name(sk.names))
+    hands = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftHand", "RightHand")])
+    feet = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftFoot", "RightFoot")])
+    rest = Motion(sk, 30.0, sk.rest_rotations.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone())
+    t = rest.translations.clone()
+    t[:, 0, 1] -= _lowest(bulky, rest, hands) + 0.03
+    before = Motion(sk, 30.0, rest.rotations, t, "hands_in_floor")
+    assert _lowest(bulky, before, hands) == pytest.approx(-0.03, abs=1e-4)
+    out = resolve(_context(bulky, before), before)
+    assert _lowest(bulky, out.motion, hands) > -0.005, out.report
+    assert _lowest(bulky, out.motion, feet) >= _lowest(bulky, before, feet) - 0.002
+
+
 def _jerk(m: Motion) -> float:
     _, gpos = m.global_transforms()
     return float((gpos[3:] - 3 * gpos[2:-1] + 3 * gpos[1:-2] - gpos[:-3]).norm(dim=-1).mean())
