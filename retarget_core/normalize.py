@@ -42,6 +42,7 @@ class NormalizationReport:
     rest_pose: str = "file"
     rest_frame: int | None = None
     facing_yaw_degrees: float = 0.0
+    ground_m: float = 0.0  # the floor height found in the file (metres, Y up), subtracted from the roots
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
@@ -226,6 +227,7 @@ def normalize_motion(
 
     # Ground: where the feet stand when they are down (a low percentile over the clip).
     ground = estimate_ground(moved, mapping)
+    report.ground_m = float(ground)
     translations = moved.translations.clone()
     rest_t = moved.skeleton.rest_translations.clone()
     for j in (j for j, p in enumerate(moved.skeleton.parents) if p < 0):
