@@ -404,6 +404,23 @@ def measure_pose(
     return PoseMeasures(depth, _hand_table(plan, hand))
 
 
+def hand_distances(
+    character: Character, mapping: JointMapping, motion: Motion, params: AcceptanceParams | None = None
+) -> np.ndarray:
+    """``(F, 2, 4)`` the judge's hand (left, right) x part (:data:`CONTACT_PARTS`) distances (m at 1.80 m) at the
+    motion's own frames (no resampling), without the penetration tests (a few ms per frame)."""
+    params = params or AcceptanceParams()
+    body = acceptance_body(character, mapping)
+    full = _plan(body)
+    none = {t: np.zeros_like(v) for t, v in full.tester_cluster.items()}
+    plan = _Plan(none, full.hand_cluster, {t: np.zeros_like(v) for t, v in full.tester_vertex.items()}, full.contact_of)
+    out = np.full((motion.num_frames, len(HANDS), len(CONTACT_PARTS)), np.inf)
+    for start, posed in _posed_chunks(character, motion, params.frame_chunk):
+        for i, p in enumerate(posed):
+            out[start + i] = _hand_table(plan, _frame(body, plan, p, params.contact_range_m / body.scale_to_180)[1])
+    return out * body.scale_to_180
+
+
 def _hand_table(plan: _Plan, hand: dict[tuple[int, str], float]) -> np.ndarray:
     out = np.full((len(HANDS), len(CONTACT_PARTS)), np.inf)
     for h in range(len(HANDS)):
@@ -705,5 +722,6 @@ __all__ = [
     "measure_acceptance",
     "measure_pose",
     "meets_targets",
+    "hand_distances",
     "planted_feet",
 ]

@@ -50,6 +50,7 @@ class ContactInstances:
     frame: Tensor
     hand: Tensor
     cluster: Tensor
+    gap: Tensor | None = None  # (N,) m: how close to its part the hand is pulled (None: the stage's default)
 
     @property
     def count(self) -> int:

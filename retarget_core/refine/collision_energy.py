@@ -165,6 +165,7 @@ class ContactTargets:
     instance: Tensor
     active: Tensor
     segments: dict[int, list[int]]
+    gap: Tensor | None = None  # (K,) m: each instance is met within this of its part (None: contact_energy's gap)
 
     @property
     def count(self) -> int:
@@ -192,10 +193,11 @@ def instance_distance(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_
 def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor, scale: float,
                    gap: float = 0.0) -> Tensor:  # fmt: skip
     """Sum of ``relu(d - gap)^2`` (cm^2 at 1.80 m) over the active contact instances (a scalar): a hand farther
-    than ``gap`` (m) from the part it touches is pulled back within it."""
+    than ``gap`` (m; ``targets.gap`` per instance when set) from the part it touches is pulled back within it."""
     if targets.count == 0:
         return posed.new_zeros(())
     d = instance_distance(sdf, targets, posed, seg_mats)
+    gap = targets.gap if targets.gap is not None else gap
     return (((d - gap).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
 
 

@@ -19,7 +19,9 @@ Method (an optimisation resolver on the whole clip at once; paper 2's learned pe
    touches like any collision (the judge counts a sunk hand as penetration) and pulled within
    ``contact_gap_m`` of its surface; hand and head positions relative to the hips kept near the source's
    (scaled by the heights; the judge's end-effector error; weakly for a hand on its contact frames, which its
-   contact places) and the feet near the input's (on the floor; foot lock plants them), so an arm leaves the torso by turning the elbow out rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
+   contact places) and the feet near the input's (on the floor; foot lock plants them); the judge's source
+   contacts the detector did not find (:mod:`judged_contacts`) held within 1.5 cm of their part; hands and
+   feet above the floor, so an arm leaves the torso by turning the elbow out rather than by swinging the hand; identity (per-joint stiffness) and knot smoothness on the residual.
    Only the pairs the judge tests are measured and resolved (:data:`collision_check.JUDGED_TESTS`: arm and leg
    vertices in the other parts; no torso vertices), and the head inside the torso is held at the input's depth,
    not pushed out (reported apart by the judge; turning the neck and spine out of it moved the head).
@@ -67,6 +69,7 @@ from retarget_core.refine.collision_energy import (
 )
 from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energy, mesh_pairs_of_motion, mesh_setup
 from retarget_core.refine.context import RefineContext, StageOutcome
+from retarget_core.refine.judged_contacts import judged_source_instances, merged_instances
 from retarget_core.refine.point_poser import PointPoser, rotvec_to_matrix
 from retarget_core.refine.temporal import bspline_basis, fallback_weights
 
@@ -149,6 +152,9 @@ class CollisionParams:
     ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell
     ground_tolerance_m: float = 0.002  # frames with a hand or foot point this far below the floor are optimised
     w_contact: float = 20.0  # per cm^2: a hand off its contact weighs like a deep penetration
+    judged_contacts: bool = True  # the judge's source contacts (a hand within 1.5 cm of a part) that the detector
+    # did not find are held too (:mod:`judged_contacts`) ...
+    held_contact_gap_m: float = 0.015  # ... within this of their part (the judge keeps a contact below 2.5 cm)
     w_pair: float = 1.0  # per cm^2 of a contact pair drifting apart beyond the allowance
     pair_allowance_m: float = 0.01  # a pair may separate this much freely (a sunk hand comes out to the surface)
     w_identity: float = 2.0  # per rad^2 per knot, times the joint's stiffness
@@ -290,15 +296,16 @@ def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Ten
     members = ctx.parts.cluster_members()
     segments = {ci: [s for s in members[name] if ctx.sdf.grids[s] is not None] for ci, name in enumerate(CLUSTERS)}
     rows: list[tuple[int, int, int, int]] = []
-    k = 0
-    for f, h, c in zip(contacts.frame.tolist(), contacts.hand.tolist(), contacts.cluster.tolist(), strict=True):
+    kept: list[int] = []
+    for n, (f, h, c) in enumerate(zip(contacts.frame.tolist(), contacts.hand.tolist(), contacts.cluster.tolist(), strict=True)):
         pts = torch.nonzero(point_part == h).flatten().tolist()
         if pos_of[f] < 0 or not pts:
             continue
-        rows.extend((int(pos_of[f]), p, c, k) for p in pts)
-        k += 1
+        rows.extend((int(pos_of[f]), p, c, len(kept)) for p in pts)
+        kept.append(n)
     data = torch.tensor(rows, dtype=torch.long).reshape(-1, 4)
-    return ContactTargets(data[:, 0], data[:, 1], data[:, 2], data[:, 3], torch.ones(k), segments)
+    gap = contacts.gap[torch.tensor(kept, dtype=torch.long)] if contacts.gap is not None else None
+    return ContactTargets(data[:, 0], data[:, 1], data[:, 2], data[:, 3], torch.ones(len(kept)), segments, gap)
 
 
 def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, params: CollisionParams, scale: float,
@@ -437,7 +444,7 @@ def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     remap[used] = torch.arange(len(used))
     poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
     groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
-    targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments)
+    targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments, t.gap)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
     mesh = MeshTerms(me.frame, remap[me.point], remap[me.tri], me.sign)
     return _Terms(poser, TripleSet(groups), targets, pairs, mesh, GroundTerms(remap[gr.point], gr.floor))
@@ -526,6 +533,10 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     f_n = motion.num_frames
     rot_in, trans = motion.rotations.float(), motion.translations.float()
     contacts = contact_instances(sdf, ctx.constraints)
+    held = torch.zeros(contacts.count, dtype=torch.bool)
+    if params.judged_contacts:
+        contacts, held = merged_instances(contacts, judged_source_instances(ctx, rot_in, trans))
+    contacts.gap = torch.where(held, params.held_contact_gap_m, params.contact_gap_m) / scale
     tol = params.penetration_tolerance_m / scale
     allowed = judged_allowed(sdf) if params.judged_pairs_only else sdf.allowed
     before = check_frames(ch, sdf, rot_in, trans, torch.arange(f_n), contacts, tol, allowed=allowed)
@@ -651,6 +662,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     report.update(_figures(before, final, contacts, ch.num_vertices, scale))
     report.update({
         "frames_changed": int(changed.sum()), "frames_optimised": int(len(active)), "iterations": iterations,
+        "held_source_contacts": int(held.sum()),
         "energy_terms": {k: round(v, 3) for k, v in terms.items()},
         "cpu_timings_s": {k: round(v, 3) for k, v in timings.items()}, "seconds": round(time.perf_counter() - t0, 3),
         "cpu_seconds": round(time.process_time() - cpu0, 3),

@@ -244,3 +244,26 @@ def test_real_clip_is_smooth_and_less_penetrating(shared_data: Path) -> None:
     assert r["frames_changed"] > 0
     assert r["penetration_after"]["penetrating_vertices_percent"] < 0.5 * r["penetration_before"]["penetrating_vertices_percent"]
     assert _jerk(out.motion) <= 1.1 * _jerk(ctx.before)
+
+
+def test_judged_source_contacts_found_and_merged(bulky: Character) -> None:
+    """A palm 1 cm off the belly in the source is a contact for the judge (within 1.5 cm): it becomes a held
+    instance of the left hand on the torso on every frame, added once next to the detector's."""
+    from retarget_core.refine.judged_contacts import judged_source_instances, merged_instances
+
+    frames = 4
+    near, _, _ = _hand_in_belly(bulky, -0.01, frames)
+    ctx = _context(bulky, near)
+    parts = ctx.parts
+    found = judged_source_instances(ctx, near.rotations, near.translations)
+    left = parts.index("LeftHand")
+    torso = CLUSTERS.index("torso")
+    pairs = set(zip(found.frame.tolist(), found.hand.tolist(), found.cluster.tolist(), strict=True))
+    assert {(f, left, torso) for f in range(frames)} <= pairs
+    assert not any(h == parts.index("RightHand") and c == torso for _, h, c in pairs)  # the right hand hangs free
+    merged, added = merged_instances(found, found)
+    assert merged.count == found.count and not bool(added.any())
+    sk = bulky.skeleton
+    rest = Motion(sk, 30.0, sk.rest_rotations.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone())
+    at_rest = judged_source_instances(_context(bulky, rest), rest.rotations, rest.translations)
+    assert not any(c == torso for c in at_rest.cluster.tolist())  # hands away from the body at rest
