@@ -102,8 +102,11 @@ def cluster_depths(sdf: PartSDF, lp: LimbPoints, triples: TripleSet, posed: Tens
 
 
 def contact_exempt(frames: int, frame: Tensor, hand_cluster: Tensor, touched_cluster: Tensor) -> Tensor:
-    """``(F, 6, 6)`` bool: on each contact's frame, (hand's cluster, touched cluster) and the reverse pair."""
+    """``(F, 6, 6)`` bool: on each contact's frame (those below ``frames``), (hand's cluster, touched cluster) and
+    the reverse pair."""
     out = torch.zeros(frames, len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
+    keep = frame < frames
+    frame, hand_cluster, touched_cluster = frame[keep], hand_cluster[keep], touched_cluster[keep]
     if frame.numel():
         out[frame, hand_cluster, touched_cluster] = True
         out[frame, touched_cluster, hand_cluster] = True

@@ -10,7 +10,8 @@
 3. Smooth in time: the residuals (as rotation vectors) are filtered by a 5-tap binomial kernel (the model is
    per-frame, as paper 2's).
 4. Never worse: every changed frame is checked with all vertices (:func:`check_frames`, the judged pairs); where
-   penetration or a contact got worse the residual is blended smoothly back to the input around it.
+   penetration or a contact got worse the residual is halved (to zero after a few rounds), blended smoothly
+   around it; frames still unchecked after the last round go back to the input.
 """
 
 from __future__ import annotations
@@ -63,7 +64,9 @@ class LearnedCollisionParams:
     worse_depth_m: float = 0.002  # or its deepest vertex goes 2 mm deeper
     contact_ok_m: float = 0.02  # a contact closer than this is kept (the judge keeps below 2.5 cm)
     fallback_ramp: int = 8
-    fallback_rounds: int = 3
+    fallback_rounds: int = 4
+    fallback_factor: float = 0.5
+    fallback_floor: float = 0.2
     changed_rad: float = 1e-4
 
 
@@ -135,6 +138,9 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
     rot_in, trans = motion.rotations.float(), motion.translations.float()
     local = roma.unitquat_to_rotmat(rot_in)
     contacts = contact_instances(sdf, ctx.constraints)
+    if contacts.count and int(contacts.frame.max()) >= f_n:  # a motion shorter than the context's
+        keep = contacts.frame < f_n
+        contacts = ContactInstances(contacts.frame[keep], contacts.hand[keep], contacts.cluster[keep])
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
     exempt = contact_exempt(f_n, contacts.frame, cluster[contacts.hand], contacts.cluster)
     lp = limb_points(ch, parts, sdf)
@@ -161,16 +167,18 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
         if not bool(worse.any()):
             check_set = check_set[:0]
             break
-        cap[check_set[worse]] = 0.0
+        bad = check_set[worse]  # halve the residual where it made things worse, to zero after a few rounds
+        half = weight[bad] * p.fallback_factor
+        cap[bad] = torch.where(half < p.fallback_floor, torch.zeros_like(half), half)
         new_w = torch.minimum(weight, fallback_weights(cap, max(1, round(p.fallback_ramp * motion.fps / 30.0))))
         check_set = torch.nonzero(new_w < weight - 1e-6).flatten()
         weight = new_w
         back = check_set[weight[check_set] == 0]
-        _restore(final, before, back)
+        _restore(final, before, back, contacts)
         check_set = check_set[weight[check_set] > 0]
     if len(check_set):  # changes of the last round not checked: back to the input there
         weight[check_set] = 0.0
-        _restore(final, before, check_set)
+        _restore(final, before, check_set, contacts)
     resid = resid * weight[:, None, None]
     changed = resid.norm(dim=-1).amax(-1) > p.changed_rad
     out_rot = _apply(rot_in, joints, resid)
@@ -201,11 +209,14 @@ def _merge_into(final: FrameCheck, after: FrameCheck) -> None:
     final.contact[upd] = after.contact[upd]
 
 
-def _restore(final: FrameCheck, before: FrameCheck, frames: Tensor) -> None:
+def _restore(final: FrameCheck, before: FrameCheck, frames: Tensor, contacts: ContactInstances) -> None:
     """Frames blended fully back to the input read the input's figures again."""
     if len(frames):
         final.volume[frames], final.max_depth[frames] = before.volume[frames], before.max_depth[frames]
         final.count[frames] = before.count[frames]
+        if contacts.count:
+            back = torch.isin(contacts.frame, frames)
+            final.contact[back] = before.contact[back]
 
 
 def _figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, v_n: int, scale: float) -> dict[str, Any]:
