@@ -105,13 +105,14 @@ def test_shipped_weights_run_on_a_sample_clip_never_worse(ctx: RefineContext) ->
 
 
 def test_shipped_weights_reduce_a_built_penetration(ctx: RefineContext) -> None:
-    """The left arm of the bulky body turned down into its side: the model must lower M_col[arm, torso]."""
+    """The left arm of the bulky body (T-pose on the first frame of the sample clip) turned down into its side by
+    75-110 degrees about the world z axis: the shipped model must lower M_col[arm, torso] well below its depth."""
     m = ctx.before.slice(0, 1)
     j = ctx.target_mapping.joints["LeftArm"]
     grot, _ = m.global_transforms()
     parent = grot[0, m.skeleton.parents[j]].float()
     depths, motions = [], []
-    for deg in range(0, 44, 4):  # about the world z axis: the hanging left arm swings in towards the body
+    for deg in range(72, 112, 4):
         r = m.rotations.clone()
         turn = roma.rotvec_to_unitquat(torch.tensor([0.0, 0.0, -deg * 3.14159 / 180.0]))
         local_turn = roma.quat_product(roma.quat_conjugation(parent), roma.quat_product(turn, parent))
@@ -119,8 +120,8 @@ def test_shipped_weights_reduce_a_built_penetration(ctx: RefineContext) -> None:
         cand = Motion(m.skeleton, m.fps, r, m.translations.clone(), "built")
         motions.append(cand)
         depths.append(float(_m_col(ctx, cand)[0, ARM, TORSO]))
-    k = max(range(len(depths)), key=lambda i: (0.015 <= depths[i] <= 0.05, depths[i] <= 0.05, depths[i]))
-    assert 0.01 <= depths[k] <= 0.06, depths
+    k = max(range(len(depths)), key=lambda i: (0.015 <= depths[i] <= 0.04, depths[i] <= 0.04, depths[i]))
+    assert 0.01 <= depths[k] <= 0.05, depths
     out = collision_model.run(ctx, motions[k])
     after = float(_m_col(ctx, out.motion)[0, ARM, TORSO])
     assert after < 0.7 * depths[k], (depths[k], after, out.report)
