@@ -327,6 +327,7 @@ def train_collisions_cmd(
     bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 12,
     stride: Annotated[int, typer.Option(help="Every n-th frame of the 30 fps clips")] = 2,
     threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    penetration_weight: Annotated[float, typer.Option(help="Weight of the penetration loss (paper 2: 0.5)")] = 0.5,
 ) -> None:
     """Train paper 2's per-limb learned collision resolver on copy poses of generated bodies."""
     import logging
@@ -340,7 +341,8 @@ def train_collisions_cmd(
     torch.set_num_threads(threads)
     if not clips.is_dir():
         _fail(f"no clip folder {clips}")
-    cfg = CollisionTrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, stride=stride)
+    cfg = CollisionTrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, stride=stride,
+                               w_penetration=penetration_weight)  # fmt: skip
     log.parent.mkdir(parents=True, exist_ok=True)
     summary = train_collisions(clips, out, cfg, cache_dir.expanduser(), log)
     console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "

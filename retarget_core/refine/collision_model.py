@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from functools import lru_cache
@@ -49,6 +50,9 @@ from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.temporal import fallback_weights
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collisions.pt"
+WEIGHTS_ENV = "RETARGET_COLLISION_WEIGHTS"
+"""Environment variable naming other weights for the stage (evaluating a training run before shipping it; not
+a job option: a job cannot name a file to load)."""
 CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
 
 
@@ -70,9 +74,14 @@ class LearnedCollisionParams:
     changed_rad: float = 1e-4
 
 
+def shipped_collision_net(path: str | None = None, device: str = "cpu") -> CollisionNet:
+    """The shipped weights (or those at ``path``, or named by ``$RETARGET_COLLISION_WEIGHTS``) on ``device``,
+    loaded once per process."""
+    return _load(path or os.environ.get(WEIGHTS_ENV) or str(WEIGHTS_PATH), device)
+
+
 @lru_cache(maxsize=4)
-def shipped_collision_net(path: str = str(WEIGHTS_PATH), device: str = "cpu") -> CollisionNet:
-    """The shipped weights (or those at ``path``) on ``device``, loaded once per process."""
+def _load(path: str, device: str) -> CollisionNet:
     return load_collision_net(path, device)[0]
 
 
