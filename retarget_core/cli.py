@@ -308,6 +308,47 @@ def train_recurrent(
                   f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.4f}")
 
 
+@train_app.command(name="collisions")
+def train_collisions_cmd(
+    clips: Annotated[Path, typer.Option(help="Folder of CMU BVH clips (held-out clips are skipped)")] = Path(
+        "../shared/data/motions/cmu"
+    ),
+    out: Annotated[Path, typer.Option("-o", "--out", help="Weights file")] = Path(
+        "retarget_core/data/models/collisions.pt"
+    ),
+    log: Annotated[Path, typer.Option(help="Losses, one JSON line per step")] = Path("var/train-collisions.jsonl"),
+    cache_dir: Annotated[Path, typer.Option(help="Where the built training set is cached")] = Path(
+        "~/.cache/retarget/collisions"
+    ),
+    steps: Annotated[int, typer.Option(help="Optimiser steps")] = 8000,
+    minutes: Annotated[float, typer.Option(help="Stop after this many minutes of training (data building apart)")] = 18.0,
+    seed: Annotated[int, typer.Option(help="Seed of bodies, frames, augmentation and weights")] = 0,
+    batch: Annotated[int, typer.Option(help="Frames per step")] = 32,
+    bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 12,
+    stride: Annotated[int, typer.Option(help="Every n-th frame of the 30 fps clips")] = 2,
+    threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    penetration_weight: Annotated[float, typer.Option(help="Weight of the penetration loss (paper 2: 0.5)")] = 0.5,
+) -> None:
+    """Train paper 2's per-limb learned collision resolver on copy poses of generated bodies."""
+    import logging
+
+    import torch
+
+    from retarget_core.model.train_collisions import CollisionTrainConfig, train_collisions
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
+    torch.set_num_threads(threads)
+    if not clips.is_dir():
+        _fail(f"no clip folder {clips}")
+    cfg = CollisionTrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, stride=stride,
+                               w_penetration=penetration_weight)  # fmt: skip
+    log.parent.mkdir(parents=True, exist_ok=True)
+    summary = train_collisions(clips, out, cfg, cache_dir.expanduser(), log)
+    console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
+                  f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.5f}")
+
+
 def _progress() -> Progress:
     return Progress(
         TextColumn("{task.description:>10}"), BarColumn(), TimeElapsedColumn(), console=console, transient=True

@@ -28,6 +28,10 @@ STAGES: tuple[StageInfo, ...] = (
     # contact distances / add foot skate (docs/model-recurrent.md); switch them on per job.
     StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network", default=False),
     StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states", default=False),
+    # learned_collisions: paper 2's per-limb model (docs/model-collisions.md); off by default until the held-out
+    # figures show it helps before the optimisation resolver.
+    StageInfo("learned_collisions", "Learned collision resolver", "paper 2's per-limb network turns limbs out of the body",
+              default=False),
     StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept"),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK"),
 )

@@ -18,6 +18,7 @@ from retarget_core.stages import REFINEMENT_STAGE_NAMES, StageInfo, stage_info
 _MODULES: dict[str, str] = {
     "recurrent": "retarget_core.refine.recurrent",
     "eso": "retarget_core.refine.eso",
+    "learned_collisions": "retarget_core.refine.collision_model",
     "collisions": "retarget_core.refine.collisions",
     "foot_lock": "retarget_core.refine.foot_lock",
 }

@@ -1,0 +1,258 @@
+"""Refinement stage ``learned_collisions``: paper 2's per-limb learned collision resolver (trained here by
+``retarget train collisions``, weights in ``retarget_core/data/models/collisions.pt``, card in
+``docs/model-collisions.md``), run before the optimisation resolver ``collisions``.
+
+1. The collision matrix of every frame on the limb points (:mod:`retarget_core.model.collision_geometry`); pairs in
+   a hand contact (ctx.constraints) are not collisions: the model never pushes a hand off a contact (the
+   optimisation stage brings a sunk hand to the surface).
+2. The four limb models on the frames with a non-zero limb row (batched): residual quaternions on the limb joints;
+   identity elsewhere (exactly: the model's residual is zero for a zero row).
+3. Smooth in time: the residuals (as rotation vectors) are filtered by a 5-tap binomial kernel (the model is
+   per-frame, as paper 2's).
+4. Never worse: every changed frame is checked with all vertices (:func:`check_frames`, the judged pairs); where
+   penetration or a contact got worse the residual is halved (to zero after a few rounds), blended smoothly
+   around it; frames still unchecked after the last round go back to the input.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import roma
+import torch
+from torch import Tensor
+
+from retarget_core import rotations as rot
+from retarget_core.model.collision_geometry import LIMB_ROWS, LimbPoints, collision_matrix, contact_exempt, limb_points
+from retarget_core.model.collision_net import (
+    BodyRig,
+    CollisionNet,
+    apply_residuals,
+    body_rig,
+    load_collision_net,
+    pose_features,
+    run_model,
+)
+from retarget_core.motion import Motion
+from retarget_core.refine.collision_check import (
+    ContactInstances,
+    FrameCheck,
+    check_frames,
+    contact_instances,
+    judged_allowed,
+)
+from retarget_core.refine.context import RefineContext, StageOutcome
+from retarget_core.refine.temporal import fallback_weights
+
+WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collisions.pt"
+WEIGHTS_ENV = "RETARGET_COLLISION_WEIGHTS"
+"""Environment variable naming other weights for the stage (evaluating a training run before shipping it; not
+a job option: a job cannot name a file to load)."""
+CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
+
+
+@dataclass(frozen=True)
+class LearnedCollisionParams:
+    """Settings of the stage; lengths at a 1.80 m character, frame counts at 30 fps."""
+
+    chunk: int = 256  # frames per batched model call
+    smooth: tuple[float, ...] = (1.0, 4.0, 6.0, 4.0, 1.0)  # temporal kernel of the residuals
+    penetration_tolerance_m: float = 0.003  # as the metrics: deeper vertices count as penetrating
+    worse_volume_fraction: float = 0.02  # a frame is worse when its penetration volume grows by more than 2 % ...
+    worse_volume_m3: float = 2e-8  # ... and by more than this
+    worse_depth_m: float = 0.002  # or its deepest vertex goes 2 mm deeper
+    contact_ok_m: float = 0.02  # a contact closer than this is kept (the judge keeps below 2.5 cm)
+    fallback_ramp: int = 8
+    fallback_rounds: int = 4
+    fallback_factor: float = 0.5
+    fallback_floor: float = 0.2
+    changed_rad: float = 1e-4
+
+
+def shipped_collision_net(path: str | None = None, device: str = "cpu") -> CollisionNet:
+    """The shipped weights (or those at ``path``, or named by ``$RETARGET_COLLISION_WEIGHTS``) on ``device``,
+    loaded once per process."""
+    return _load(path or os.environ.get(WEIGHTS_ENV) or str(WEIGHTS_PATH), device)
+
+
+@lru_cache(maxsize=4)
+def _load(path: str, device: str) -> CollisionNet:
+    return load_collision_net(path, device)[0]
+
+
+def _residual_rotvec(model: CollisionNet, rig: BodyRig, lp: LimbPoints, local: Tensor, trans: Tensor, frames: Tensor,
+                     m_col: Tensor, chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Per joint rotation vectors ``(F, J, 3)`` of the model's residuals at ``frames`` (zero elsewhere), and the
+    limb joints ``(K,)`` it may turn."""
+    out = torch.zeros(local.shape[0], local.shape[1], 3)
+    with torch.no_grad():
+        for s in range(0, len(frames), chunk):
+            fr = frames[s : s + chunk]
+            _, mats, gpos = lp.poser(local[fr], trans[fr])
+            dq = run_model(model, pose_features(rig, local[fr], mats, gpos), m_col[fr], rig.shoulder)
+            turned = apply_residuals(rig, local[fr], dq)
+            delta = local[fr].transpose(-1, -2) @ turned  # (n, J, 3, 3) local residual
+            out[fr] = roma.rotmat_to_rotvec(delta)
+    joints = torch.cat([j[j >= 0] for j in rig.limb_joints.values()])
+    return out, joints
+
+
+def _smooth(resid: Tensor, kernel: tuple[float, ...]) -> Tensor:
+    """``resid (F, J, 3)`` filtered along frames by ``kernel`` (normalised; edges replicated)."""
+    k = torch.tensor(kernel) / sum(kernel)
+    r = len(kernel) // 2
+    x = resid.permute(1, 2, 0).reshape(-1, 1, resid.shape[0])
+    x = torch.nn.functional.pad(x, (r, r), mode="replicate")
+    y = torch.nn.functional.conv1d(x, k.view(1, 1, -1))
+    return y.view(resid.shape[1], 3, resid.shape[0]).permute(2, 0, 1)
+
+
+def _apply(rot_in: Tensor, joints: Tensor, resid: Tensor) -> Tensor:
+    """``rot_in (F, J, 4)`` with ``rot_in[:, j] * exp(resid[:, j])`` for the ``joints``."""
+    out = rot_in.clone()
+    out[:, joints] = rot.normalize(rot.mul(rot_in[:, joints], roma.rotvec_to_unitquat(resid[:, joints])))
+    return out
+
+
+def _worse(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, p: LearnedCollisionParams, scale: float) -> Tensor:
+    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames)."""
+    idx = after.frames
+    vol_b = before.volume[idx] * scale**3
+    grow = after.volume * scale**3 - vol_b
+    worse = grow > torch.clamp(p.worse_volume_fraction * vol_b, min=p.worse_volume_m3)
+    worse |= (after.max_depth - before.max_depth[idx]) * scale > p.worse_depth_m
+    if contacts.count:
+        bad = (after.contact > torch.clamp(before.contact, min=p.contact_ok_m / scale)) & ~torch.isnan(after.contact)
+        pos_of = torch.full((len(before.frames),), -1, dtype=torch.long)
+        pos_of[idx] = torch.arange(len(idx))
+        hit = pos_of[contacts.frame[bad]]
+        worse[hit[hit >= 0]] = True
+    return worse
+
+
+def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollisionParams | None = None,
+                    model: CollisionNet | None = None) -> StageOutcome:  # fmt: skip
+    """The learned resolver on ``motion`` (on ``ctx.target``'s skeleton); see the module doc."""
+    p = params or LearnedCollisionParams()
+    t0 = time.perf_counter()
+    model = model or shipped_collision_net()
+    ch, sdf, parts = ctx.target, ctx.sdf, ctx.parts
+    scale = sdf.scale_to_180
+    f_n = motion.num_frames
+    rot_in, trans = motion.rotations.float(), motion.translations.float()
+    local = roma.unitquat_to_rotmat(rot_in)
+    contacts = contact_instances(sdf, ctx.constraints)
+    if contacts.count and int(contacts.frame.max()) >= f_n:  # a motion shorter than the context's
+        keep = contacts.frame < f_n
+        contacts = ContactInstances(contacts.frame[keep], contacts.hand[keep], contacts.cluster[keep])
+    cluster = torch.tensor(parts.cluster, dtype=torch.long)
+    exempt = contact_exempt(f_n, contacts.frame, cluster[contacts.hand], contacts.cluster)
+    lp = limb_points(ch, parts, sdf)
+    m_col = collision_matrix(sdf, lp, local, trans, exempt)
+    active = torch.nonzero(m_col[:, list(LIMB_ROWS)].flatten(1).amax(-1) > 0).flatten()
+    t_model = time.perf_counter()
+    resid, joints = _residual_rotvec(model, body_rig(ch, ctx.target_mapping, parts), lp, local, trans, active, m_col, p.chunk)
+    model_s = time.perf_counter() - t_model
+    resid = _smooth(resid, p.smooth) if len(active) else resid
+    tol = p.penetration_tolerance_m / scale
+    allowed = judged_allowed(sdf)
+    magnitude = resid.norm(dim=-1).amax(-1)  # (F,)
+    check_set = torch.nonzero(magnitude > p.changed_rad).flatten()
+    before = check_frames(ch, sdf, rot_in, trans, torch.arange(f_n), contacts, tol, allowed=allowed)
+    final = _copy_check(before)
+    weight, cap = torch.ones(f_n), torch.ones(f_n)
+    for _ in range(p.fallback_rounds):
+        if len(check_set) == 0:
+            break
+        after = check_frames(ch, sdf, _apply(rot_in, joints, resid * weight[:, None, None]), trans, check_set, contacts,
+                             tol, allowed=allowed)  # fmt: skip
+        _merge_into(final, after)
+        worse = _worse(before, after, contacts, p, scale)
+        if not bool(worse.any()):
+            check_set = check_set[:0]
+            break
+        bad = check_set[worse]  # halve the residual where it made things worse, to zero after a few rounds
+        half = weight[bad] * p.fallback_factor
+        cap[bad] = torch.where(half < p.fallback_floor, torch.zeros_like(half), half)
+        new_w = torch.minimum(weight, fallback_weights(cap, max(1, round(p.fallback_ramp * motion.fps / 30.0))))
+        check_set = torch.nonzero(new_w < weight - 1e-6).flatten()
+        weight = new_w
+        back = check_set[weight[check_set] == 0]
+        _restore(final, before, back, contacts)
+        check_set = check_set[weight[check_set] > 0]
+    if len(check_set):  # changes of the last round not checked: back to the input there
+        weight[check_set] = 0.0
+        _restore(final, before, check_set, contacts)
+    resid = resid * weight[:, None, None]
+    changed = resid.norm(dim=-1).amax(-1) > p.changed_rad
+    out_rot = _apply(rot_in, joints, resid)
+    out_rot[~changed] = rot_in[~changed]
+    angle = torch.rad2deg(resid.norm(dim=-1))
+    report: dict[str, Any] = {
+        "method": "paper 2 per-limb learned resolver (collision matrix, semantic matrix, dense residual quaternions)",
+        "frames_changed": int(changed.sum()), "frames_colliding_input": int(len(active)),
+        "fallback_frames": int((weight < 1).sum()),
+        "mean_joint_change_deg": round(float(angle[changed].mean()) if bool(changed.any()) else 0.0, 3),
+        "max_joint_change_deg": round(float(angle.max()) if angle.numel() else 0.0, 2),
+        "model_ms_per_frame": round(1000 * model_s / max(len(active), 1), 4),
+        "ms_per_frame": round(1000 * (time.perf_counter() - t0) / max(f_n, 1), 3),
+        **_figures(before, final, contacts, ch.num_vertices, scale),
+    }  # fmt: skip
+    result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)
+    return StageOutcome(result, report)
+
+
+def _copy_check(c: FrameCheck) -> FrameCheck:
+    return FrameCheck(c.frames, c.volume.clone(), c.max_depth.clone(), c.count.clone(), c.depth, c.contact.clone())
+
+
+def _merge_into(final: FrameCheck, after: FrameCheck) -> None:
+    idx = after.frames
+    final.volume[idx], final.max_depth[idx], final.count[idx] = after.volume, after.max_depth, after.count
+    upd = ~torch.isnan(after.contact)
+    final.contact[upd] = after.contact[upd]
+
+
+def _restore(final: FrameCheck, before: FrameCheck, frames: Tensor, contacts: ContactInstances) -> None:
+    """Frames blended fully back to the input read the input's figures again."""
+    if len(frames):
+        final.volume[frames], final.max_depth[frames] = before.volume[frames], before.max_depth[frames]
+        final.count[frames] = before.count[frames]
+        if contacts.count:
+            back = torch.isin(contacts.frame, frames)
+            final.contact[back] = before.contact[back]
+
+
+def _figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, v_n: int, scale: float) -> dict[str, Any]:
+    """Penetration (and contact) figures before and after the stage, at 1.80 m."""
+
+    def pen(c: FrameCheck) -> dict[str, float]:
+        return {
+            "penetrating_vertices_percent": round(float(c.count.mean() / v_n * 100.0), 4) if len(c.count) else 0.0,
+            "max_depth_cm": round(float(c.max_depth.max() * scale * 100.0), 3) if len(c.max_depth) else 0.0,
+            "frames_deeper_than_1cm_percent": round(float((c.max_depth * scale > 0.01).float().mean() * 100.0), 2)
+            if len(c.max_depth) else 0.0,
+        }  # fmt: skip
+
+    out: dict[str, Any] = {"penetration_before": pen(before), "penetration_after": pen(after)}
+    if contacts.count:
+        kept = CONTACT_KEPT_M / scale
+        out["contacts"] = {
+            "instances": contacts.count,
+            "kept_before": round(float((before.contact < kept).float().mean()), 4),
+            "kept_after": round(float((after.contact < kept).float().mean()), 4),
+        }
+    return out
+
+
+def run(ctx: RefineContext, motion: Motion) -> StageOutcome:
+    """The stage entry point (``refine`` registry): :func:`resolve_learned` with the shipped weights."""
+    return resolve_learned(ctx, motion)
+
+
+__all__ = ["LearnedCollisionParams", "WEIGHTS_PATH", "resolve_learned", "run", "shipped_collision_net"]
