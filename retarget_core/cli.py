@@ -327,7 +327,7 @@ def train_collisions_cmd(
     bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 12,
     stride: Annotated[int, typer.Option(help="Every n-th frame of the 30 fps clips")] = 2,
     threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
-    penetration_weight: Annotated[float, typer.Option(help="Weight of the penetration loss (paper 2: 0.5)")] = 0.5,
+    penetration_weight: Annotated[float, typer.Option(help="Weight of the penetration loss (paper 2: 0.5)")] = 2.0,
 ) -> None:
     """Train paper 2's per-limb learned collision resolver on copy poses of generated bodies."""
     import logging

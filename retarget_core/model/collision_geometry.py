@@ -113,12 +113,6 @@ def contact_exempt(frames: int, frame: Tensor, hand_cluster: Tensor, touched_clu
     return out
 
 
-def pose_points(lp: LimbPoints, local_rot: Tensor, trans: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Posed limb points ``(B, P, 3)``, segment transforms ``(B, S, 3, 4)`` and joint positions ``(B, J, 3)`` from
-    local rotation matrices ``(B, J, 3, 3)`` and translations ``(B, J, 3)``."""
-    return lp.poser(local_rot, trans)
-
-
 def collision_matrix(sdf: PartSDF, lp: LimbPoints, local_rot: Tensor, trans: Tensor, exempt: Tensor | None = None,
                      chunk: int = 256) -> Tensor:  # fmt: skip
     """``M_col (F, 6, 6)`` of a whole motion (no gradients), in chunks of ``chunk`` frames; ``local_rot (F, J, 3,
@@ -142,5 +136,4 @@ __all__ = [
     "contact_exempt",
     "find_triples",
     "limb_points",
-    "pose_points",
 ]

@@ -33,7 +33,7 @@ from torch import Tensor, nn
 from retarget_core.body_parts import CLUSTER_OF, CLUSTERS, BodyParts
 from retarget_core.canonical import CANONICAL_JOINTS, JointMapping
 from retarget_core.character import Character
-from retarget_core.model.collision_geometry import LIMBS
+from retarget_core.model.collision_geometry import LIMB_ROWS, LIMBS
 
 N_CANON = len(CANONICAL_JOINTS)
 LIMB_JOINTS: dict[str, tuple[str, ...]] = {c: tuple(n for n in CANONICAL_JOINTS if CLUSTER_OF[n] == c) for c in LIMBS}
@@ -216,8 +216,6 @@ def apply_residuals(rig: BodyRig, local_rot: Tensor, dq: dict[str, Tensor]) -> T
 
 def run_model(model: CollisionNet, feats: dict[str, Tensor], m_col: Tensor, shoulder: float) -> dict[str, Tensor]:
     """Per limb ``dq (B, K, 4)`` from its features and its row of ``M_col (B, 6, 6)`` (m at the body's scale)."""
-    from retarget_core.model.collision_geometry import LIMB_ROWS
-
     return {c: model.limbs[c](feats[c], m_col[:, r] / shoulder) for c, r in zip(LIMBS, LIMB_ROWS, strict=True)}
 
 

@@ -125,3 +125,15 @@ def test_shipped_weights_reduce_a_built_penetration(ctx: RefineContext) -> None:
     out = collision_model.run(ctx, motions[k])
     after = float(_m_col(ctx, out.motion)[0, ARM, TORSO])
     assert after < 0.7 * depths[k], (depths[k], after, out.report)
+
+
+def test_pipeline_runs_the_learned_stage_before_collisions_when_switched_on(prepared: Prepared) -> None:
+    from retarget_core import pipeline
+    from retarget_core.options import RetargetOptions
+
+    opts = RetargetOptions(frame_end=FRAMES, stages={"learned_collisions": True, "collisions": False, "foot_lock": False})
+    result = pipeline.refine(prepared, options=opts)
+    assert "learned_collisions" in result.stages_run and "collisions" not in result.stages_run
+    rep = result.stage_reports["learned_collisions"]
+    assert rep["frames_changed"] >= 0 and "penetration_after" in rep
+    assert result.after.num_frames == prepared.before.num_frames
