@@ -195,6 +195,49 @@ class LoopReader:
         self._engine = None
 
 
+class LoopWriter:
+    """A connection of its own for the one short write of a submission, made on the event loop.
+
+    A thread hand-off costs a busy loop more than the write: the answer waits for the thread, the interpreter
+    lock and two more turns of the loop behind every poll that arrived meanwhile. The write must not wait long
+    for others, though, since the whole process waits with it: SQLite waits at most ``wait_seconds`` for the
+    write lock (its busy timeout), PostgreSQL at most that long for a row lock (``lock_timeout``). A write that
+    fails with :class:`~sqlalchemy.exc.OperationalError` (busy, lock timeout, broken connection; nothing was
+    written) is for the caller to make again in a thread. Each write checks out a fresh ``Connection`` (one
+    database connection underneath), so a change of isolation level never outlives the write."""
+
+    def __init__(self, url: str, wait_seconds: float = 0.02) -> None:
+        self.url = normalise_database_url(url)
+        self.wait_ms = max(1, int(wait_seconds * 1000))
+        self._engine: Engine | None = None
+        self._pid = os.getpid()
+
+    def connect(self) -> Connection:
+        """A connection to write through (use it as a context manager)."""
+        if self._engine is None or self._pid != os.getpid():
+            self._pid = os.getpid()
+            if self.url.startswith("sqlite"):
+                self._engine = create_engine(self.url, poolclass=StaticPool,
+                                             connect_args={"timeout": self.wait_ms / 1000, "check_same_thread": False})
+                event.listen(self._engine, "connect", _sqlite_pragmas)
+                event.listen(self._engine, "connect", self._sqlite_busy_timeout)  # after the pragmas' 30 s
+            else:
+                self._engine = create_engine(self.url, poolclass=StaticPool,
+                                             connect_args={"options": f"-c lock_timeout={self.wait_ms}"})
+        return self._engine.connect()
+
+    def _sqlite_busy_timeout(self, dbapi_connection: Any, _record: Any) -> None:
+        cur = dbapi_connection.cursor()
+        cur.execute(f"PRAGMA busy_timeout={self.wait_ms}")
+        cur.close()
+
+    def close(self) -> None:
+        """Close the connection (the next write opens a new one)."""
+        if self._engine is not None and self._pid == os.getpid():
+            self._engine.dispose()
+        self._engine = None
+
+
 def dispose_all() -> None:
     """Close every engine of this process (tests and shutdown)."""
     with _LOCK:

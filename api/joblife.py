@@ -6,6 +6,7 @@ Every change is a conditional UPDATE on (id, attempt, status), so two processes 
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 from celery import Celery
 from sqlalchemy import update
@@ -14,7 +15,9 @@ from sqlalchemy.orm import Session
 from api.db import session_scope, updated, utcnow
 from api.models import Job, WebhookDelivery
 from api.queue import TASK_DELIVER_WEBHOOK, TASK_RUN_JOB
-from api.sentmarks import SentMarker
+
+if TYPE_CHECKING:  # sentmarks sends with send_job
+    from api.sentmarks import SentMarker
 
 log = logging.getLogger(__name__)
 

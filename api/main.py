@@ -15,7 +15,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
 from api import contract
-from api.db import LoopReader, configure_pool
+from api.db import LoopReader, LoopWriter, configure_pool
 from api.keycache import KeyCache
 from api.queue import make_celery
 from api.routes import batches, characters, health, jobs, motions, reviews
@@ -67,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if marker is not None:
             marker.stop()
         app.state.loop_reader.close()
+        app.state.loop_writer.close()
 
     app = FastAPI(
         lifespan=lifespan,
@@ -88,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.storage = storage
     app.state.key_cache = KeyCache(settings.key_cache_seconds)
     app.state.loop_reader = LoopReader(settings.resolved_database_url)
+    app.state.loop_writer = LoopWriter(settings.resolved_database_url, settings.loop_write_wait_seconds)
     app.state.upload_slots = asyncio.Semaphore(settings.max_concurrent_uploads)
     app.state.celery = make_celery(settings, main="retarget-api")
     if settings.cors_origins:

@@ -57,7 +57,13 @@ class Settings(BaseSettings):
     gil_switch_interval_seconds: float = Field(
         default=0.001, ge=0, description="Python's thread switch interval in an API process (sys.setswitchinterval; "
         "0: leave Python's 0.005). A busy event loop hands the interpreter lock to a waiting thread only this "
-        "often, and a submission's thread needs it after each database or broker round trip"
+        "often, and a thread (the sent marker's broker sends, sync endpoints) needs it after each round trip"
+    )
+
+    loop_write_wait_seconds: float = Field(
+        default=0.02, gt=0, description="Longest wait of a submission's write on an API process's event loop for "
+        "another writer (SQLite's write lock, a PostgreSQL row lock); the whole process waits with it. Past it the "
+        "write is made in a thread"
     )
 
     # Uploads
@@ -211,8 +217,10 @@ class Settings(BaseSettings):
         return self.data_dir / "tmp"
 
 
+@lru_cache(maxsize=64)
 def normalise_database_url(url: str) -> str:
-    """``postgresql://`` and ``postgres://`` use psycopg 3 when psycopg2 is absent (psycopg 3 is what we install)."""
+    """``postgresql://`` and ``postgres://`` use psycopg 3 when psycopg2 is absent (psycopg 3 is what we install).
+    Cached: looking for the driver costs file system calls, and every submission asks several times."""
     for prefix in ("postgres://", "postgresql://"):
         if url.startswith(prefix):
             rest = url[len(prefix):]

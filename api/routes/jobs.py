@@ -8,13 +8,14 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel
 from sqlalchemy import Row, bindparam, func, insert, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.engine import Connection
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.callbacks import CallbackRefused, check_url
-from api.db import LoopReader, get_engine, session_scope, write_lock
+from api.db import LoopReader, LoopWriter, get_engine, session_scope, write_lock
 from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, retry, send_and_mark, send_webhook
@@ -111,10 +112,11 @@ def latest_deliveries(session: Session, job_ids: list[str]) -> dict[str, Webhook
     return {d.job_id: d for d in rows}
 
 
-def note_for(job: Job | Row[Any], settings: Settings) -> str | None:
-    """The job's note, or for a queued job on a queue no live worker serves, a note saying so."""
+def note_for(job: Job | Row[Any], settings: Settings, reader: LoopReader | None = None) -> str | None:
+    """The job's note, or for a queued job on a queue no live worker serves, a note saying so (the queues read
+    through ``reader`` when given)."""
     if job.status == "queued" and not job.note:
-        return waiting_note(job.queue, settings)
+        return waiting_note(job.queue, settings, reader)
     return job.note
 
 
@@ -197,24 +199,49 @@ def _prepare_job(reader: LoopReader, settings: Settings, key: ApiKey, body: JobC
     }, None
 
 
-def _insert_job(settings: Settings, celery: Any, key: ApiKey, values: dict[str, Any], idem: str | None,
-                scope: str, fp: str, marker: SentMarker | None) -> tuple[JobOut, bool]:
-    """The write of a submission (in a thread): the job row and its Idempotency-Key record in one transaction,
-    then the send."""
+def _write_job(conn: Connection, key: ApiKey, values: dict[str, Any], idem: str | None, scope: str,
+               fp: str) -> Row[Any]:
+    """The write of a submission: the job row and its Idempotency-Key record in one transaction."""
+    if idem:
+        with conn.begin():
+            job = conn.execute(_INSERT_JOB, values).one()
+            conn.execute(_INSERT_IDEM, {"owner_id": key.id, "key": idem, "scope": scope, "fingerprint": fp,
+                                        "resource_id": job.id})
+        return job
+    # one statement: autocommit spares PostgreSQL's BEGIN and COMMIT round trips
+    return conn.execution_options(isolation_level="AUTOCOMMIT").execute(_INSERT_JOB, values).one()
+
+
+def _write_job_in_thread(url: str, key: ApiKey, values: dict[str, Any], idem: str | None, scope: str,
+                         fp: str) -> Row[Any]:
+    """:func:`_write_job` through the pool, taking turns with this process's other writers (SQLite)."""
+    with write_lock(url), get_engine(url).connect() as conn:
+        return _write_job(conn, key, values, idem, scope, fp)
+
+
+async def _insert_job(state: Any, settings: Settings, celery: Any, key: ApiKey, values: dict[str, Any],
+                      idem: str | None, scope: str, fp: str) -> tuple[JobOut, bool]:
+    """Write the job on the event loop (in a thread when the loop's write would have to wait), then send it:
+    from the marker's thread when there is one (the committed row is the outbox), else in a thread now."""
     url = settings.resolved_database_url
+    writer: LoopWriter = state.loop_writer
     try:
-        with write_lock(url), get_engine(url).connect() as conn:
-            if idem:
-                with conn.begin():
-                    job = conn.execute(_INSERT_JOB, values).one()
-                    conn.execute(_INSERT_IDEM, {"owner_id": key.id, "key": idem, "scope": scope, "fingerprint": fp,
-                                                "resource_id": job.id})
-            else:  # one statement: autocommit spares PostgreSQL's BEGIN and COMMIT round trips
-                job = conn.execution_options(isolation_level="AUTOCOMMIT").execute(_INSERT_JOB, values).one()
+        try:
+            with writer.connect() as conn:
+                job = _write_job(conn, key, values, idem, scope, fp)
+        except OperationalError as exc:  # busy, a lock timeout, a broken connection: nothing was written
+            if exc.connection_invalidated:
+                writer.close()
+            job = await run_in_threadpool(_write_job_in_thread, url, key, values, idem, scope, fp)
     except IntegrityError as exc:
-        return _replay_race(settings, key, idem, scope, fp, exc), True
-    send_and_mark(url, celery, [(job.id, job.attempt, job.queue)], marker)
-    return job_out(job, None, note=note_for(job, settings)), False
+        return await run_in_threadpool(_replay_race, settings, key, idem, scope, fp, exc), True
+    runs = [(job.id, job.attempt, job.queue)]
+    marker: SentMarker | None = getattr(state, "sent_marker", None)
+    if marker is not None:
+        marker.send(celery, runs)
+    else:
+        await run_in_threadpool(send_and_mark, url, celery, runs)
+    return job_out(job, None, note=note_for(job, settings, state.loop_reader)), False
 
 
 @router.post(
@@ -231,15 +258,15 @@ def _insert_job(settings: Settings, celery: Any, key: ApiKey, values: dict[str, 
 )
 async def create_job(request: Request, body: JobCreate, key: CurrentKey, settings: SettingsDep, celery: CeleryDep,
                      idempotency_key: IdempotencyKey = None) -> Response:
-    # Reads and checks on the event loop, the write (and the send) in a thread.
+    # Reads, checks and the write on the event loop; the send from the marker's thread.
     scope, fp = "POST /v1/jobs", fingerprint(body.model_dump_json())
     values, replay = _prepare_job(request.app.state.loop_reader, settings, key, body, idempotency_key, scope, fp)
     if values is None:
         assert replay is not None
         job, replayed = replay, True
     else:
-        job, replayed = await run_in_threadpool(_insert_job, settings, celery, key, values, idempotency_key, scope,
-                                                fp, getattr(request.app.state, "sent_marker", None))
+        job, replayed = await _insert_job(request.app.state, settings, celery, key, values, idempotency_key,
+                                          scope, fp)
     headers = {"Location": f"/v1/jobs/{job.id}"}
     if replayed:
         headers[REPLAYED_HEADER] = "true"

@@ -204,6 +204,7 @@ def test_job_lifecycle_submit_cancel_retry(api_env: ApiEnv) -> None:
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}" and job["status"] == "queued"
     assert job["options"]["frame_end"] == 30 and job["links"]["cancel"].endswith("/cancel")
+    api_env.client.app.state.sent_marker.flush()  # sent by the API process's marker thread
     sent = api_env.celery.named(TASK_RUN_JOB)
     assert len(sent) == 1 and sent[0].queue == "cpu" and sent[0].kwargs == {"job_id": job["id"], "attempt": 1}
     assert api_env.client.get(f"/v1/jobs/{job['id']}/result.glb", headers=h).status_code == 409

@@ -3,13 +3,16 @@ and 422, security headers, review links, quotas, job size, callback URLs, multip
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
+import pytest
 from api_testkit import ApiEnv
 from sqlalchemy import func, select
 
-from api.db import session_scope
-from api.models import Asset, Job
+from api.db import get_engine, session_scope
+from api.models import ApiKey, Asset, Job
+from api.routes import jobs as jobs_routes
 
 GLB = b"glTF\x02\x00\x00\x00" + b"\x00" * 200
 BVH = b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xrotation Yrotation Zrotation\n}\nMOTION\n"
@@ -85,6 +88,43 @@ def test_jobs_are_sent_and_marked_sent(api_env: ApiEnv) -> None:
     job = api_env.client.post("/v1/jobs", json={"motion_id": m, "target_character_id": c}, headers=h).json()
     with session_scope(api_env.url) as s:
         assert s.get(Job, job["id"]).sent_at is None  # the reaper sends it within seconds
+
+
+def test_submission_waited_on_by_a_lock_is_written_in_a_thread(api_env: ApiEnv,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A submission's write is made on the event loop; when another writer holds the lock it needs (SQLite's
+    write lock, a PostgreSQL row lock) past ``loop_write_wait_seconds``, it is made in a thread instead, once."""
+    in_thread: list[str | None] = []
+
+    def spy(url: str, key: Any, values: dict[str, Any], idem: str | None, *rest: Any) -> Any:
+        in_thread.append(idem)
+        return write_in_thread(url, key, values, idem, *rest)
+
+    write_in_thread = jobs_routes._write_job_in_thread
+    monkeypatch.setattr(jobs_routes, "_write_job_in_thread", spy)
+    h = api_env.key()
+    m, c = assets(api_env, h)
+    body = {"motion_id": m, "target_character_id": c}
+    hold = get_engine(api_env.url).connect()
+    if api_env.url.startswith("sqlite"):
+        hold.exec_driver_sql("BEGIN IMMEDIATE")  # the write lock
+    else:
+        hold.begin()
+        owner = select(Asset.owner_id).where(Asset.id == m).scalar_subquery()
+        hold.execute(select(ApiKey).where(ApiKey.id == owner).with_for_update())  # blocks the job's foreign key
+    releaser = threading.Timer(0.5, hold.rollback)
+    releaser.start()
+    try:
+        r = api_env.client.post("/v1/jobs", json=body, headers=h)  # waits in a thread until the lock is free
+        assert r.status_code == 202, r.text
+        r = api_env.client.post("/v1/jobs", json=body, headers={**h, "Idempotency-Key": "lock-1"})
+        assert r.status_code == 202, r.text
+    finally:
+        releaser.join()
+        hold.close()
+    assert in_thread == [None] and jobs_of(api_env) == 2  # the second found the lock free again
+    r = api_env.client.post("/v1/jobs", json=body, headers={**h, "Idempotency-Key": "lock-1"})
+    assert r.headers["idempotent-replayed"] == "true" and jobs_of(api_env) == 2
 
 
 def test_list_bounds_and_unknown_paths(api_env: ApiEnv) -> None:
