@@ -67,7 +67,9 @@ def _pushed_in(ch: Character, depth: float, frames: int) -> Motion:
     return Motion(ch.skeleton, 30.0, r, t, "pushed_in")
 
 
-def _context(ch: Character, before: Motion, constraints: ContactConstraints | None = None) -> RefineContext:
+def _context(ch: Character, before: Motion, constraints: ContactConstraints | None = None,
+             source: Motion | None = None) -> RefineContext:  # fmt: skip
+    """The context of ``before`` on ``ch``; the source is ``source`` on the same body (default: ``before``)."""
     mapping = mapping_by_name(ch.skeleton.names)
     parts = body_parts(ch, mapping)
     f_n = before.num_frames
@@ -76,7 +78,7 @@ def _context(ch: Character, before: Motion, constraints: ContactConstraints | No
                             torch.zeros(0, dtype=torch.bool), torch.zeros(0))  # fmt: skip
     return RefineContext(
         target=ch, target_mapping=mapping, parts=parts, sdf=_sdf(ch, parts), source_body=ch, source_mapping=mapping,
-        source_view=before, self_contacts=contacts, constraints=constraints or no_contacts(f_n),
+        source_view=before if source is None else source, self_contacts=contacts, constraints=constraints or no_contacts(f_n),
         feet=FootContacts(torch.zeros(f_n, 4, dtype=torch.bool), [-1] * 4), before=before,
     )  # fmt: skip
 
@@ -101,7 +103,9 @@ def _matrix(ctx: RefineContext, m: Motion) -> torch.Tensor:
 def test_cluster_matrix_reads_the_depth_and_resolution_separates(depth: float) -> None:
     ch = _arm_boxes()
     before = _pushed_in(ch, depth, frames=12)
-    ctx = _context(ch, before)
+    # The source holds the arm just clear of the torso (2 cm above it): a hand inside the part on the source
+    # would be a contact, held on the surface rather than pushed clear.
+    ctx = _context(ch, before, source=_pushed_in(ch, -0.02, frames=12))
     arm, torso = CLUSTERS.index("left_arm"), CLUSTERS.index("torso")
     m = _matrix(ctx, before)
     assert m.shape == (12, 6, 6)

@@ -77,11 +77,13 @@ def test_end_effector_targets_follow_the_source_relative_to_the_hips() -> None:
     _, g_in = kinematics.forward_kinematics(ch.skeleton.parents, before.rotations[frames], before.translations[frames])
     _, g_src = kinematics.forward_kinematics(ch.skeleton.parents, src_rot[frames], src_tr[frames])
     hand = ctx.target_mapping.joints["LeftHand"]
-    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], 0.0)[:, 0], g_in[:, hand])
-    full = _ee_targets(ctx, g_in, frames, ["LeftHand"], 1.0)[:, 0]
+    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.0})[:, 0], g_in[:, hand])
+    full = _ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 1.0})[:, 0]
     assert torch.allclose(full - g_in[:, 0], g_src[:, hand] - g_src[:, 0], atol=1e-5)
-    half = _ee_targets(ctx, g_in, frames, ["LeftHand"], 0.5)[:, 0]
+    half = _ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.5})[:, 0]
     assert torch.allclose(half, 0.5 * (full + g_in[:, hand]), atol=1e-5)
+    # A name without a pull (the feet by default) stays at the input's position.
+    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], {})[:, 0], g_in[:, hand])
 
 
 def test_a_hand_in_contact_is_placed_by_its_contact_not_its_end_effector_target() -> None:
