@@ -4,6 +4,7 @@ and never-worse check read (the same blended-SDF depths as :mod:`retarget_core.m
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -136,5 +137,48 @@ def _contact_distance(sdf: PartSDF, samples: PairSamples, contacts: ContactInsta
     return table.index_select(0, q)
 
 
-__all__ = ["JUDGED_TESTS", "ContactInstances", "FrameCheck", "check_frames", "contact_instances", "judged_allowed",
-           "judged_cluster_table"]
+class WorseLimits(Protocol):
+    """What makes a frame worse than before (lengths at 1.80 m): the stages' (frozen) parameters carry these.
+    worse_volume_fraction and worse_volume_m3: penetration volume grown by more than both; worse_depth_m: the
+    deepest vertex this much deeper; contact_ok_m: a contact closer than this counts as kept."""
+
+    @property
+    def worse_volume_fraction(self) -> float: ...
+    @property
+    def worse_volume_m3(self) -> float: ...
+    @property
+    def worse_depth_m(self) -> float: ...
+    @property
+    def contact_ok_m(self) -> float: ...
+
+
+def worse_frames(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, limits: WorseLimits,
+                 scale: float) -> Tensor:  # fmt: skip
+    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames);
+    ``scale`` turns body lengths into lengths at 1.80 m."""
+    idx = after.frames
+    vol_b = before.volume[idx] * scale**3
+    grow = after.volume * scale**3 - vol_b
+    worse = grow > torch.clamp(limits.worse_volume_fraction * vol_b, min=limits.worse_volume_m3)
+    worse |= (after.max_depth - before.max_depth[idx]) * scale > limits.worse_depth_m
+    if contacts.count:
+        ok = limits.contact_ok_m / scale
+        bad = (after.contact > torch.clamp(before.contact, min=ok)) & ~torch.isnan(after.contact)
+        pos_of = torch.full((len(before.frames),), -1, dtype=torch.long)
+        pos_of[idx] = torch.arange(len(idx))
+        hit = pos_of[contacts.frame[bad]]
+        worse[hit[hit >= 0]] = True
+    return worse
+
+
+__all__ = [
+    "JUDGED_TESTS",
+    "ContactInstances",
+    "FrameCheck",
+    "WorseLimits",
+    "check_frames",
+    "contact_instances",
+    "judged_allowed",
+    "judged_cluster_table",
+    "worse_frames",
+]

@@ -197,8 +197,8 @@ def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mat
     if targets.count == 0:
         return posed.new_zeros(())
     d = instance_distance(sdf, targets, posed, seg_mats)
-    gap = targets.gap if targets.gap is not None else gap
-    return (((d - gap).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
+    g: Tensor | float = targets.gap if targets.gap is not None else gap
+    return (((d - g).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
 
 
 @dataclass

@@ -45,6 +45,7 @@ from retarget_core.refine.collision_check import (
     check_frames,
     contact_instances,
     judged_allowed,
+    worse_frames,
 )
 from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.temporal import fallback_weights
@@ -119,22 +120,6 @@ def _apply(rot_in: Tensor, joints: Tensor, resid: Tensor) -> Tensor:
     return out
 
 
-def _worse(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, p: LearnedCollisionParams, scale: float) -> Tensor:
-    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames)."""
-    idx = after.frames
-    vol_b = before.volume[idx] * scale**3
-    grow = after.volume * scale**3 - vol_b
-    worse = grow > torch.clamp(p.worse_volume_fraction * vol_b, min=p.worse_volume_m3)
-    worse |= (after.max_depth - before.max_depth[idx]) * scale > p.worse_depth_m
-    if contacts.count:
-        bad = (after.contact > torch.clamp(before.contact, min=p.contact_ok_m / scale)) & ~torch.isnan(after.contact)
-        pos_of = torch.full((len(before.frames),), -1, dtype=torch.long)
-        pos_of[idx] = torch.arange(len(idx))
-        hit = pos_of[contacts.frame[bad]]
-        worse[hit[hit >= 0]] = True
-    return worse
-
-
 def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollisionParams | None = None,
                     model: CollisionNet | None = None) -> StageOutcome:  # fmt: skip
     """The learned resolver on ``motion`` (on ``ctx.target``'s skeleton); see the module doc."""
@@ -172,7 +157,7 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
         after = check_frames(ch, sdf, _apply(rot_in, joints, resid * weight[:, None, None]), trans, check_set, contacts,
                              tol, allowed=allowed)  # fmt: skip
         _merge_into(final, after)
-        worse = _worse(before, after, contacts, p, scale)
+        worse = worse_frames(before, after, contacts, p, scale)
         if not bool(worse.any()):
             check_set = check_set[:0]
             break

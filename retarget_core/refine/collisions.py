@@ -53,6 +53,7 @@ from retarget_core.refine.collision_check import (
     check_frames,
     contact_instances,
     judged_allowed,
+    worse_frames,
 )
 from retarget_core.refine.collision_energy import (
     ContactPairs,
@@ -497,23 +498,6 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
     return {k: float(v.detach()) for k, v in last.items()}
 
 
-def _worse(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, params: CollisionParams, scale: float) -> Tensor:
-    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames)."""
-    idx = after.frames
-    vol_b = before.volume[idx] * scale**3
-    grow = after.volume * scale**3 - vol_b
-    worse = grow > torch.clamp(params.worse_volume_fraction * vol_b, min=params.worse_volume_m3)
-    worse |= (after.max_depth - before.max_depth[idx]) * scale > params.worse_depth_m
-    if contacts.count:
-        ok = params.contact_ok_m / scale
-        bad = (after.contact > torch.clamp(before.contact, min=ok)) & ~torch.isnan(after.contact)
-        pos_of = torch.full((len(before.frames),), -1, dtype=torch.long)
-        pos_of[idx] = torch.arange(len(idx))
-        bad_pos = pos_of[contacts.frame[bad]]
-        worse[bad_pos[bad_pos >= 0]] = True
-    return worse
-
-
 def _merge(before: FrameCheck, after: FrameCheck) -> FrameCheck:
     """``before`` (all frames) with the frames of ``after`` replaced."""
     out = FrameCheck(before.frames, before.volume.clone(), before.max_depth.clone(), before.count.clone(), before.depth, before.contact.clone())
@@ -628,7 +612,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             after = check_frames(ch, sdf, cand, trans, check_set, contacts, tol, allowed=allowed)
             _with_mesh(ch, body, after, cand, trans, params.mesh_near_m / scale)
             final = _merge(final, after)
-            worse = _worse(before, after, contacts, params, scale)
+            worse = worse_frames(before, after, contacts, params, scale)
             if not bool(worse.any()):
                 check_set = check_set[:0]
                 break
