@@ -4,7 +4,7 @@ and never-worse check read (the same blended-SDF depths as :mod:`retarget_core.m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -171,7 +171,39 @@ def worse_frames(before: FrameCheck, after: FrameCheck, contacts: ContactInstanc
     return worse
 
 
+CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
+
+
+def stage_figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, v_n: int,
+                  scale: float) -> dict[str, Any]:  # fmt: skip
+    """A collision stage's report figures: penetration and contacts before and after (at 1.80 m; ``v_n``
+    vertices; 0 for a clip without frames)."""
+
+    def pen(c: FrameCheck) -> dict[str, float]:
+        if len(c.max_depth) == 0:
+            return {"penetrating_vertices_percent": 0.0, "max_depth_cm": 0.0, "frames_deeper_than_1cm_percent": 0.0}
+        return {
+            "penetrating_vertices_percent": round(float(c.count.mean() / v_n * 100.0), 4),
+            "max_depth_cm": round(float(c.max_depth.max() * scale * 100.0), 3),
+            "frames_deeper_than_1cm_percent": round(float((c.max_depth * scale > 0.01).float().mean() * 100.0), 2),
+        }
+
+    out: dict[str, Any] = {"penetration_before": pen(before), "penetration_after": pen(after)}
+    if contacts.count:
+        kept = CONTACT_KEPT_M / scale
+        out["contacts"] = {
+            "instances": contacts.count,
+            "kept_before": round(float((before.contact < kept).float().mean()), 4),
+            "kept_after": round(float((after.contact < kept).float().mean()), 4),
+            "mean_distance_before_cm": round(float(before.contact.mean() * scale * 100.0), 3),
+            "mean_distance_after_cm": round(float(after.contact.mean() * scale * 100.0), 3),
+        }
+    return out
+
+
 __all__ = [
+    "CONTACT_KEPT_M",
+    "stage_figures",
     "JUDGED_TESTS",
     "ContactInstances",
     "FrameCheck",

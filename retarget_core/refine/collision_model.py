@@ -45,6 +45,7 @@ from retarget_core.refine.collision_check import (
     check_frames,
     contact_instances,
     judged_allowed,
+    stage_figures,
     worse_frames,
 )
 from retarget_core.refine.context import RefineContext, StageOutcome
@@ -54,7 +55,6 @@ WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collis
 WEIGHTS_ENV = "RETARGET_COLLISION_WEIGHTS"
 """Environment variable naming other weights for the stage (evaluating a training run before shipping it; not
 a job option: a job cannot name a file to load)."""
-CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
 
 
 @dataclass(frozen=True)
@@ -186,7 +186,7 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
         "max_joint_change_deg": round(float(angle.max()) if angle.numel() else 0.0, 2),
         "model_ms_per_frame": round(1000 * model_s / max(len(active), 1), 4),
         "ms_per_frame": round(1000 * (time.perf_counter() - t0) / max(f_n, 1), 3),
-        **_figures(before, final, contacts, ch.num_vertices, scale),
+        **stage_figures(before, final, contacts, ch.num_vertices, scale),
     }  # fmt: skip
     result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)
     return StageOutcome(result, report)
@@ -211,28 +211,6 @@ def _restore(final: FrameCheck, before: FrameCheck, frames: Tensor, contacts: Co
         if contacts.count:
             back = torch.isin(contacts.frame, frames)
             final.contact[back] = before.contact[back]
-
-
-def _figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, v_n: int, scale: float) -> dict[str, Any]:
-    """Penetration (and contact) figures before and after the stage, at 1.80 m."""
-
-    def pen(c: FrameCheck) -> dict[str, float]:
-        return {
-            "penetrating_vertices_percent": round(float(c.count.mean() / v_n * 100.0), 4) if len(c.count) else 0.0,
-            "max_depth_cm": round(float(c.max_depth.max() * scale * 100.0), 3) if len(c.max_depth) else 0.0,
-            "frames_deeper_than_1cm_percent": round(float((c.max_depth * scale > 0.01).float().mean() * 100.0), 2)
-            if len(c.max_depth) else 0.0,
-        }  # fmt: skip
-
-    out: dict[str, Any] = {"penetration_before": pen(before), "penetration_after": pen(after)}
-    if contacts.count:
-        kept = CONTACT_KEPT_M / scale
-        out["contacts"] = {
-            "instances": contacts.count,
-            "kept_before": round(float((before.contact < kept).float().mean()), 4),
-            "kept_after": round(float((after.contact < kept).float().mean()), 4),
-        }
-    return out
 
 
 def run(ctx: RefineContext, motion: Motion) -> StageOutcome:

@@ -48,11 +48,13 @@ from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import (
+    CONTACT_KEPT_M,
     ContactInstances,
     FrameCheck,
     check_frames,
     contact_instances,
     judged_allowed,
+    stage_figures,
     worse_frames,
 )
 from retarget_core.refine.collision_energy import (
@@ -97,7 +99,6 @@ END_EFFECTOR_WEIGHTS: dict[str, float] = {"LeftHand": 0.5, "RightHand": 0.5, "Le
 END_EFFECTOR_PULL: dict[str, float] = {"LeftHand": 1.0, "RightHand": 1.0, "LeftFoot": 0.0, "RightFoot": 0.0, "Head": 1.0}
 
 
-CONTACT_KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's distance is below 2.5 cm
 
 
 @dataclass(frozen=True)
@@ -643,7 +644,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         weight = torch.ones(f_n)
     if params.trace:
         report["trace"] = {"active": active.tolist(), "weight": weight.tolist()}
-    report.update(_figures(before, final, contacts, ch.num_vertices, scale))
+    report.update(stage_figures(before, final, contacts, ch.num_vertices, scale))
     report.update({
         "frames_changed": int(changed.sum()), "frames_optimised": int(len(active)), "iterations": iterations,
         "held_source_contacts": int(held.sum()),
@@ -654,29 +655,6 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     ctx.report_progress(1.0)
     result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)
     return StageOutcome(result, report)
-
-
-def _figures(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, v_n: int, scale: float) -> dict[str, Any]:
-    """Penetration and contact figures before and after the stage (at 1.80 m)."""
-
-    def pen(c: FrameCheck) -> dict[str, float]:
-        return {
-            "penetrating_vertices_percent": round(float(c.count.mean() / v_n * 100.0), 4),
-            "max_depth_cm": round(float(c.max_depth.max() * scale * 100.0), 3),
-            "frames_deeper_than_1cm_percent": round(float((c.max_depth * scale > 0.01).float().mean() * 100.0), 2),
-        }
-
-    out: dict[str, Any] = {"penetration_before": pen(before), "penetration_after": pen(after)}
-    if contacts.count:
-        kept = CONTACT_KEPT_M / scale
-        out["contacts"] = {
-            "instances": contacts.count,
-            "kept_before": round(float((before.contact < kept).float().mean()), 4),
-            "kept_after": round(float((after.contact < kept).float().mean()), 4),
-            "mean_distance_before_cm": round(float(before.contact.mean() * scale * 100.0), 3),
-            "mean_distance_after_cm": round(float(after.contact.mean() * scale * 100.0), 3),
-        }
-    return out
 
 
 def _with_mesh(ch: Any, body: Any, check: FrameCheck, rotations: Tensor, translations: Tensor,
