@@ -116,10 +116,9 @@ def _as_in_file(source: LoadedMotion, body: LoadedCharacter, view: Motion) -> Mo
     0.985 to 0.85, measured). BVH sources (no body in the file) are left as they stand."""
     if body is not source.source_character or view.num_frames != source.motion.num_frames:
         return view
-    root = [j for j, p in enumerate(view.skeleton.parents) if p < 0]
-    _, g_file = source.motion.global_transforms()
-    _, g_view = view.global_transforms()
-    lift = float((g_file[:, root[0], 1] - g_view[:, root[0], 1]).mean()) + source.normalization.ground_m
+    root = [j for j, p in enumerate(view.skeleton.parents) if p < 0]  # a root's position is its translation
+    lift = float((source.motion.translations[:, root[0], 1] - view.translations[:, root[0], 1]).mean())
+    lift += source.normalization.ground_m
     t = view.translations.clone()
     t[:, root, 1] += lift
     return replace(view, translations=t)
