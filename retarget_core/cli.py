@@ -260,93 +260,85 @@ def evaluate(
 train_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Train the learned stages.")
 app.add_typer(train_app, name="train")
 
+# Options both training commands take (their defaults differ per command).
+ClipsOption = Annotated[Path, typer.Option(help="Folder of CMU BVH clips (held-out clips are skipped)")]
+WeightsOption = Annotated[Path, typer.Option("-o", "--out", help="Weights file")]
+LogOption = Annotated[Path, typer.Option(help="Losses, one JSON line per step")]
+CacheOption = Annotated[Path, typer.Option(help="Where the built training set is cached")]
+ThreadsOption = Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")]
+SHARED_CLIPS = Path("../shared/data/motions/cmu")
+
+
+def _start_training(clips: Path, threads: int, log: Path) -> None:
+    """Logging, torch threads and the clip folder's check before a training run."""
+    import logging
+
+    import torch
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
+    torch.set_num_threads(threads)
+    if not clips.is_dir():
+        _fail(f"no clip folder {clips}")
+    log.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _trained(out: Path, summary: dict[str, Any], digits: int) -> None:
+    console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
+                  f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.{digits}f}")  # fmt: skip
+
 
 @train_app.command(name="recurrent")
 def train_recurrent(
-    clips: Annotated[Path, typer.Option(help="Folder of CMU BVH clips (held-out clips are skipped)")] = Path(
-        "../shared/data/motions/cmu"
-    ),
-    out: Annotated[Path, typer.Option("-o", "--out", help="Weights file")] = Path(
-        "retarget_core/data/models/recurrent.pt"
-    ),
-    log: Annotated[Path, typer.Option(help="Losses, one JSON line per step")] = Path("var/train-recurrent.jsonl"),
-    cache_dir: Annotated[Path, typer.Option(help="Where the built training set is cached")] = Path(
-        "~/.cache/retarget/recurrent"
-    ),
+    clips: ClipsOption = SHARED_CLIPS,
+    out: WeightsOption = Path("retarget_core/data/models/recurrent.pt"),
+    log: LogOption = Path("var/train-recurrent.jsonl"),
+    cache_dir: CacheOption = Path("~/.cache/retarget/recurrent"),
     steps: Annotated[int, typer.Option(help="Optimiser steps")] = 1500,
     minutes: Annotated[float, typer.Option(help="Stop after this many minutes of training")] = 30.0,
     seed: Annotated[int, typer.Option(help="Seed of bodies, windows and weights")] = 0,
     batch: Annotated[int, typer.Option(help="Windows per step")] = 8,
     bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 6,
     ik_windows: Annotated[int, typer.Option(help="IK contact windows added to the clips")] = 80,
-    threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    threads: ThreadsOption = 1,
     contact_weight: Annotated[float, typer.Option(help="Weight of the vertex-contact term")] = 1000.0,
     ik_share: Annotated[float, typer.Option(help="Share of windows drawn from the IK contact windows")] = 0.3,
     energy: Annotated[str, typer.Option(help="Energy trained on (paper 1 table 3's ablation): skeleton, foot "
                                             "(+ foot), interpenetration (+ interpenetration) or full")] = "full",
 ) -> None:
     """Train the geometry-conditioned recurrent retargeter on the energy and write its weights."""
-    import logging
-
-    import torch
-
     from retarget_core.model.train_recurrent import ENERGY_TERMS, TrainConfig, train, with_energy
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
-    torch.set_num_threads(threads)
-    if not clips.is_dir():
-        _fail(f"no clip folder {clips}")
-    cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
-                      w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
+    _start_training(clips, threads, log)
     if energy not in ENERGY_TERMS:
         _fail(f"unknown energy {energy!r}; one of {', '.join(ENERGY_TERMS)}")
-    cfg = with_energy(cfg, energy)
-    log.parent.mkdir(parents=True, exist_ok=True)
-    summary = train(clips, out, cfg, cache_dir.expanduser(), log)
-    console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
-                  f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.4f}")
+    cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
+                      w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
+    _trained(out, train(clips, out, with_energy(cfg, energy), cache_dir.expanduser(), log), 4)
 
 
 @train_app.command(name="collisions")
 def train_collisions_cmd(
-    clips: Annotated[Path, typer.Option(help="Folder of CMU BVH clips (held-out clips are skipped)")] = Path(
-        "../shared/data/motions/cmu"
-    ),
-    out: Annotated[Path, typer.Option("-o", "--out", help="Weights file")] = Path(
-        "retarget_core/data/models/collisions.pt"
-    ),
-    log: Annotated[Path, typer.Option(help="Losses, one JSON line per step")] = Path("var/train-collisions.jsonl"),
-    cache_dir: Annotated[Path, typer.Option(help="Where the built training set is cached")] = Path(
-        "~/.cache/retarget/collisions"
-    ),
+    clips: ClipsOption = SHARED_CLIPS,
+    out: WeightsOption = Path("retarget_core/data/models/collisions.pt"),
+    log: LogOption = Path("var/train-collisions.jsonl"),
+    cache_dir: CacheOption = Path("~/.cache/retarget/collisions"),
     steps: Annotated[int, typer.Option(help="Optimiser steps")] = 8000,
     minutes: Annotated[float, typer.Option(help="Stop after this many minutes of training (data building apart)")] = 18.0,
     seed: Annotated[int, typer.Option(help="Seed of bodies, frames, augmentation and weights")] = 0,
     batch: Annotated[int, typer.Option(help="Frames per step")] = 32,
     bodies: Annotated[int, typer.Option(help="Generated training bodies")] = 12,
     stride: Annotated[int, typer.Option(help="Every n-th frame of the 30 fps clips")] = 2,
-    threads: Annotated[int, typer.Option(help="Torch threads (1 makes runs reproducible)")] = 1,
+    threads: ThreadsOption = 1,
     penetration_weight: Annotated[float, typer.Option(help="Weight of the penetration loss (paper 2: 0.5)")] = 2.0,
 ) -> None:
     """Train paper 2's per-limb learned collision resolver on copy poses of generated bodies."""
-    import logging
-
-    import torch
-
     from retarget_core.model.train_collisions import CollisionTrainConfig, train_collisions
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    logging.getLogger("retarget_core.mapping").setLevel(logging.WARNING)
-    torch.set_num_threads(threads)
-    if not clips.is_dir():
-        _fail(f"no clip folder {clips}")
+    _start_training(clips, threads, log)
     cfg = CollisionTrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, stride=stride,
                                w_penetration=penetration_weight)  # fmt: skip
-    log.parent.mkdir(parents=True, exist_ok=True)
-    summary = train_collisions(clips, out, cfg, cache_dir.expanduser(), log)
-    console.print(f"wrote {out}: {summary['steps']} steps in {summary['train_seconds']:.0f} s "
-                  f"(data {summary['data_seconds']:.0f} s), final loss {summary['final'].get('loss', float('nan')):.5f}")
+    _trained(out, train_collisions(clips, out, cfg, cache_dir.expanduser(), log), 5)
 
 
 def _progress() -> Progress:

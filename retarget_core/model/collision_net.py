@@ -92,7 +92,9 @@ class LimbResolver(nn.Module):
         self.phi = nn.Sequential(*layers)
         self.d = cfg.d
         self.dq = DenseResidual(len(CLUSTERS) * cfg.d, cfg.dq_width, cfg.dq_layers, joints)
-        self.register_buffer("mean", torch.zeros(in_dim))
+        self.mean: Tensor
+        self.std: Tensor
+        self.register_buffer("mean", torch.zeros(in_dim))  # feature normalisation (fit_normalisation)
         self.register_buffer("std", torch.ones(in_dim))
 
     def semantic(self, feats: Tensor) -> Tensor:

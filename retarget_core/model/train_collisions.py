@@ -38,12 +38,14 @@ from retarget_core.model.collision_geometry import LIMB_ROWS, cluster_depths, fi
 from retarget_core.model.collision_net import (
     CollisionNet,
     CollisionNetConfig,
+    LimbResolver,
     apply_residuals,
     pose_features,
     run_model,
     save_collision_net,
 )
 from retarget_core.model.train_recurrent import body_bank
+from retarget_core.model.training_log import TrainingLog
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +150,7 @@ def fit_normalisation(model: CollisionNet, data: CollisionData, kits: list[BodyK
     for c, fs in feats.items():
         x = torch.cat(fs)
         limb = model.limbs[c]
+        assert isinstance(limb, LimbResolver)
         limb.mean.copy_(x.mean(0))
         limb.std.copy_(x.std(0).clamp_min(1e-3))
 
@@ -165,43 +168,36 @@ def train_collisions(clip_dir: Path, out: Path, cfg: CollisionTrainConfig, cache
     model = CollisionNet(cfg.network)
     fit_normalisation(model, data, kits, rng)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
-    logf = log_path.open("w") if log_path is not None else None
-    t0 = time.perf_counter()
-    model.train()
-    step, last, ema = 0, {}, {}
-    for step in range(1, cfg.steps + 1):
-        frac = (step - 1) / max(cfg.steps - 1, 1)
-        for g in opt.param_groups:
-            g["lr"] = cfg.learning_rate * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * frac)))
-        body = (step - 1) % len(kits)
-        idx = draw_frames(data.bodies[body], cfg.batch, cfg.colliding_share, rng)
-        loss, terms = step_loss(model, kits[body], data.bodies[body], idx, cfg, gen)
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        last = {"step": step, "body": body, "loss": float(loss.detach()), **terms, "lr": opt.param_groups[0]["lr"],
-                "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
-        for k in ("loss", *terms):
-            ema[k] = last[k] if k not in ema else 0.98 * ema[k] + 0.02 * last[k]
-        if logf is not None:
-            logf.write(json.dumps(last) + "\n")
-            logf.flush()
-        if step % 100 == 0:
-            log.info("step %d loss %.5f pen %.5f / input %.5f (ema) %.0f s", step, ema["loss"], ema["penetration"],
-                     ema["penetration_input"], last["seconds"])  # fmt: skip
-        if time.perf_counter() - t0 > cfg.max_minutes * 60:
-            log.info("time budget reached at step %d", step)
-            break
+    with TrainingLog(log_path, cfg.max_minutes) as record:
+        model.train()
+        step = 0
+        for step in range(1, cfg.steps + 1):
+            frac = (step - 1) / max(cfg.steps - 1, 1)
+            for g in opt.param_groups:
+                g["lr"] = cfg.learning_rate * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * frac)))
+            body = (step - 1) % len(kits)
+            idx = draw_frames(data.bodies[body], cfg.batch, cfg.colliding_share, rng)
+            loss, terms = step_loss(model, kits[body], data.bodies[body], idx, cfg, gen)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            last = record.record(step, body, float(loss.detach()), terms, opt.param_groups[0]["lr"])
+            ema = record.ema
+            if step % 100 == 0:
+                log.info("step %d loss %.5f pen %.5f / input %.5f (ema) %.0f s", step, ema["loss"], ema["penetration"],
+                         ema["penetration_input"], last["seconds"])  # fmt: skip
+            if record.out_of_time():
+                log.info("time budget reached at step %d", step)
+                break
+        train_seconds = record.seconds
     model.eval()
     summary = {
-        "steps": step, "train_seconds": round(time.perf_counter() - t0, 1), "data_seconds": round(data_seconds, 1),
-        "final": last, "ema": ema, "config": json.loads(json.dumps(asdict(cfg), default=str)), "data": data.info,
+        "steps": step, "train_seconds": round(train_seconds, 1), "data_seconds": round(data_seconds, 1),
+        "final": record.last, "ema": record.ema, "config": json.loads(json.dumps(asdict(cfg), default=str)), "data": data.info,
         "bodies": [b.params.model_dump() for b in data.bodies], "torch_threads": torch.get_num_threads(),
     }  # fmt: skip
     save_collision_net(model, out, summary)
-    if logf is not None:
-        logf.close()
     return summary
 
 

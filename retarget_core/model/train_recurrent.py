@@ -32,6 +32,7 @@ from retarget_core.model import energy as en
 from retarget_core.model.data import Dataset, build_dataset, draw_windows, load_body_kit, training_clips
 from retarget_core.model.features import apply_residual, source_features
 from retarget_core.model.network import NetworkConfig, RecurrentRetargeter, save_network
+from retarget_core.model.training_log import TrainingLog
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,8 @@ def with_energy(cfg: TrainConfig, energy: str) -> TrainConfig:
     """``cfg`` trained on the energy ``energy`` (a key of :data:`ENERGY_TERMS`): the other terms weighted 0."""
     if energy not in ENERGY_TERMS:
         raise ValueError(f"unknown energy {energy!r}; one of {', '.join(ENERGY_TERMS)}")
-    return replace(cfg, energy=energy, **{w: 0.0 for w in ENERGY_TERMS[energy]})
+    zeroed: dict[str, Any] = {w: 0.0 for w in ENERGY_TERMS[energy]}
+    return replace(cfg, energy=energy, **zeroed)
 
 
 def body_bank(seed: int, count: int) -> list[BodyParams]:
@@ -196,42 +198,32 @@ def train(
     fit_normalisation(model, data, kits, cfg, rng)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate, betas=cfg.adam_betas)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.steps_per_epoch, gamma=cfg.lr_decay_per_epoch)
-    logf = log_path.open("w") if log_path is not None else None
-    t0 = time.perf_counter()
-    model.train()
-    step = 0
-    last: dict[str, float] = {}
-    ema: dict[str, float] = {}
-    for step in range(1, cfg.steps + 1):
-        body = (step - 1) % len(kits)
-        wb = draw_windows(data, body, cfg.batch, cfg.window, rng, cfg.ik_share, cfg.speed_range)
-        loss, terms = window_loss(model, kits[body], wb, cfg, min(1.0, step / cfg.steps), rng)
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        sched.step()
-        last = {"step": step, "body": body, "loss": float(loss.detach()), **terms, "lr": float(sched.get_last_lr()[0]),
-                "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
-        for k in ("loss", *terms):
-            ema[k] = last[k] if k not in ema else 0.98 * ema[k] + 0.02 * last[k]
-        if logf is not None:
-            logf.write(json.dumps(last) + "\n")
-            logf.flush()
-        if step % 50 == 0:
-            log.info("step %d loss %.4f (ema %.4f) %.0f s", step, last["loss"], ema["loss"], last["seconds"])
-        if time.perf_counter() - t0 > cfg.max_minutes * 60:
-            log.info("time budget reached at step %d", step)
-            break
+    with TrainingLog(log_path, cfg.max_minutes) as record:
+        model.train()
+        step = 0
+        for step in range(1, cfg.steps + 1):
+            body = (step - 1) % len(kits)
+            wb = draw_windows(data, body, cfg.batch, cfg.window, rng, cfg.ik_share, cfg.speed_range)
+            loss, terms = window_loss(model, kits[body], wb, cfg, min(1.0, step / cfg.steps), rng)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            sched.step()
+            last = record.record(step, body, float(loss.detach()), terms, float(sched.get_last_lr()[0]))
+            if step % 50 == 0:
+                log.info("step %d loss %.4f (ema %.4f) %.0f s", step, last["loss"], record.ema["loss"], last["seconds"])
+            if record.out_of_time():
+                log.info("time budget reached at step %d", step)
+                break
+        train_seconds = record.seconds
     model.eval()
     summary = {
-        "steps": step, "train_seconds": round(time.perf_counter() - t0, 1), "data_seconds": round(data_seconds, 1),
-        "final": last, "ema": ema, "config": _jsonable(asdict(cfg)), "data": data.info,
+        "steps": step, "train_seconds": round(train_seconds, 1), "data_seconds": round(data_seconds, 1),
+        "final": record.last, "ema": record.ema, "config": _jsonable(asdict(cfg)), "data": data.info,
         "bodies": [b.params.model_dump() for b in data.bodies], "torch_threads": torch.get_num_threads(),
     }  # fmt: skip
     save_network(model, out, summary)
-    if logf is not None:
-        logf.close()
     return summary
 
 

@@ -15,7 +15,7 @@ Terms (lengths in cm at a 1.80 m character, so the weights mean the same on ever
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -166,28 +166,61 @@ class ContactTargets:
     active: Tensor
     segments: dict[int, list[int]]
     gap: Tensor | None = None  # (K,) m: each instance is met within this of its part (None: contact_energy's gap)
+    tested: list[tuple[int, Tensor]] | None = None  # per segment, the pair rows measured against it (None: every
+    # row against every segment of its cluster; :func:`near_contact_rows` keeps the ones that can be the nearest)
 
     @property
     def count(self) -> int:
         return int(self.active.shape[0])
 
+    def segment_rows(self) -> list[tuple[int, Tensor]]:
+        """Per segment ``j``, the pair rows ``(n,)`` whose distance to ``j`` is measured."""
+        if self.tested is not None:
+            return self.tested
+        out: list[tuple[int, Tensor]] = []
+        for c, segs in self.segments.items():
+            sel = torch.nonzero(self.cluster == c).flatten()
+            if len(sel):
+                out.extend((j, sel) for j in segs)
+        return out
+
+
+def _row_distances(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor) -> tuple[Tensor, Tensor]:
+    """Signed distances ``(M,)`` (m) of the measured (pair row, segment) combinations and their rows ``(M,)``."""
+    p_n = posed.shape[1]
+    flat = posed.reshape(-1, 3)
+    ds, rows = [], []
+    for j, sel in targets.segment_rows():
+        f = targets.frame.index_select(0, sel)
+        x = flat.index_select(0, f * p_n + targets.point.index_select(0, sel))
+        r, t = seg_mats[:, j, :, :3].index_select(0, f), seg_mats[:, j, :, 3].index_select(0, f)
+        ds.append(segment_distance(sdf, j, torch.einsum("nji,nj->ni", r, x - t)))
+        rows.append(sel)
+    if not ds:
+        return posed.new_zeros(0), torch.zeros(0, dtype=torch.long)
+    return torch.cat(ds), torch.cat(rows)
+
 
 def instance_distance(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor) -> Tensor:
     """``(K,)`` signed distance (m) of each contact instance's nearest hand point to its touched cluster."""
-    p_n = posed.shape[1]
-    x_all = posed.reshape(-1, 3).index_select(0, targets.frame * p_n + targets.point)
-    best = x_all.new_full((len(targets.frame),), float("inf"))
-    for c, segs in targets.segments.items():
-        sel = torch.nonzero(targets.cluster == c).flatten()
-        if len(sel) == 0:
-            continue
-        f, x = targets.frame.index_select(0, sel), x_all.index_select(0, sel)
-        for j in segs:
-            r, t = seg_mats[:, j, :, :3].index_select(0, f), seg_mats[:, j, :, 3].index_select(0, f)
-            d = segment_distance(sdf, j, torch.einsum("nji,nj->ni", r, x - t))
-            best = best.index_put((sel,), torch.minimum(best.index_select(0, sel), d))
-    out = best.new_full((targets.count,), float("inf"))
-    return out.scatter_reduce(0, targets.instance, best, "amin", include_self=True)
+    d, rows = _row_distances(sdf, targets, posed, seg_mats)
+    out = posed.new_full((targets.count,), float("inf"))
+    return out.scatter_reduce(0, targets.instance.index_select(0, rows), d, "amin", include_self=True)
+
+
+def near_contact_rows(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor,
+                      within: float) -> ContactTargets:  # fmt: skip
+    """``targets`` measuring only the (pair row, segment) combinations within ``within`` (m) of their
+    instance's nearest at the given pose: the only ones that can become the nearest during the next few steps
+    (no gradients; the same distances while they hold)."""
+    with torch.no_grad():
+        d, rows = _row_distances(sdf, targets, posed, seg_mats)
+        inst = targets.instance.index_select(0, rows)
+        best = d.new_full((targets.count,), float("inf")).scatter_reduce(0, inst, d, "amin", include_self=True)
+        keep = d <= best.index_select(0, inst) + within
+        seg_of = torch.cat([torch.full((len(sel),), j, dtype=torch.long) for j, sel in targets.segment_rows()]) if len(rows) else rows
+    tested = [(j, rows[keep & (seg_of == j)]) for j in torch.unique(seg_of[keep]).tolist()]
+    return replace(targets, tested=tested)
 
 
 def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor, scale: float,
@@ -243,6 +276,7 @@ __all__ = [
     "candidate_triples",
     "instance_distance",
     "contact_energy",
+    "near_contact_rows",
     "near_triples",
     "penetration_energy",
     "triple_depths",

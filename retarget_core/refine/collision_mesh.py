@@ -114,26 +114,28 @@ def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: flo
     rows_f, rows_v, rows_t, rows_s, rows_d = [], [], [], [], []
     for f in range(posed.shape[0]):
         p = posed[f]
-        for tester, targets in MESH_TARGETS.items():
-            cand, drag = setup.testers[tester], setup.dragged[tester]
-            if len(cand) == 0 or len(drag) == 0:
+        queries = _frame_queries(setup, p, reach)  # tester part -> its vertices near the dragged skin
+        for t_name in {t for tester in queries for t in MESH_TARGETS[tester]}:
+            part = body.part(t_name)
+            if part is None:
                 continue
-            lo, hi = p[drag].min(0) - reach, p[drag].max(0) + reach
-            q_idx = cand[np.all((p[cand] >= lo) & (p[cand] <= hi), axis=1)]
-            if len(q_idx) == 0:
-                continue
-            q = np.ascontiguousarray(p[q_idx])
-            for t_name in targets:
-                part = body.part(t_name)
-                if part is None:
+            local = part.posed(p)
+            tree = igl.AABB()  # built once per frame and part, for both arms
+            tree.init(local, part.faces)
+            winding: igl.FastWindingNumberBVH | None = None  # built when first needed
+            for tester, q_idx in queries.items():
+                if t_name not in MESH_TARGETS[tester]:
                     continue
-                local = part.posed(p)
-                d2, face, _ = igl.point_mesh_squared_distance(q, local, part.faces)
+                q = np.ascontiguousarray(p[q_idx])
+                d2, face, _ = tree.squared_distance(local, part.faces, q)
                 d = np.sqrt(d2)
                 inside = np.zeros(len(q), dtype=bool)
                 close = np.nonzero(d < reach)[0]  # deeper: the rigid SDFs see it
                 if len(close):
-                    inside[close] = np.abs(igl.fast_winding_number(local, part.faces, q[close])) > 0.5
+                    if winding is None:
+                        winding = igl.FastWindingNumberBVH()
+                        winding.init(local, part.faces)
+                    inside[close] = np.abs(winding.winding_number(np.ascontiguousarray(q[close]))) > 0.5
                 keep = (inside | (d < near)) & ~part.is_cap[face]
                 if not keep.any():
                     continue
@@ -156,6 +158,21 @@ def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: flo
         torch.from_numpy(np.concatenate(rows_t)).long(), torch.from_numpy(np.concatenate(rows_s)).float(),
         torch.from_numpy(np.concatenate(rows_d)).float(),
     )  # fmt: skip
+
+
+def _frame_queries(setup: MeshSetup, p: np.ndarray, reach: float) -> dict[str, np.ndarray]:
+    """Tester part -> its tester vertices inside the posed dragged skin's box ``p (V, 3)`` grown by ``reach``
+    (parts with none left out)."""
+    out: dict[str, np.ndarray] = {}
+    for tester in MESH_TARGETS:
+        cand, drag = setup.testers[tester], setup.dragged[tester]
+        if len(cand) == 0 or len(drag) == 0:
+            continue
+        lo, hi = p[drag].min(0) - reach, p[drag].max(0) + reach
+        q_idx = cand[np.all((p[cand] >= lo) & (p[cand] <= hi), axis=1)]
+        if len(q_idx):
+            out[tester] = q_idx
+    return out
 
 
 def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tensor, translations: Tensor,

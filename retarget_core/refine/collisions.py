@@ -64,6 +64,7 @@ from retarget_core.refine.collision_energy import (
     candidate_triples,
     contact_energy,
     instance_distance,
+    near_contact_rows,
     near_triples,
     pair_distance,
     pair_energy,
@@ -446,7 +447,7 @@ def _compact(ctx: RefineContext, terms: _Terms) -> _Terms:
     remap[used] = torch.arange(len(used))
     poser = PointPoser(ctx.target, terms.poser.points[used], ctx.parts.joints)
     groups = [(g[0], g[1], remap[g[2]], *g[3:]) for g in terms.triples.groups]
-    targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments, t.gap)
+    targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments, t.gap, t.tested)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
     mesh = MeshTerms(me.frame, remap[me.point], remap[me.tri], me.sign)
     return _Terms(poser, TripleSet(groups), targets, pairs, mesh, GroundTerms(remap[gr.point], gr.floor))
@@ -485,7 +486,8 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
             with torch.no_grad():
                 posed, seg_mats, _ = full_terms.poser(prob.local(knots), prob.trans)
             near = near_triples(ctx.sdf, full, posed, seg_mats, within)
-            terms = _compact(ctx, _Terms(full_terms.poser, near, full_terms.targets, full_terms.pairs, full_terms.mesh,
+            targets = near_contact_rows(ctx.sdf, full_terms.targets, posed, seg_mats, within)
+            terms = _compact(ctx, _Terms(full_terms.poser, near, targets, full_terms.pairs, full_terms.mesh,
                                          full_terms.ground))  # fmt: skip
         frac = it / max(steps - 1, 1)
         decay = params.lr_final_fraction + (1 - params.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))

@@ -14,15 +14,12 @@ import torch
 from torch import Tensor
 
 from retarget_core import kinematics
-from retarget_core.body_parts import CLUSTERS
-from retarget_core.metrics.acceptance import hand_distances
-from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS
+from retarget_core.body_parts import CLUSTERS, body_parts
+from retarget_core.contacts.hand_distance import REFERENCE_HEIGHT_M, HandPartDistances, hand_part_distances
 from retarget_core.refine.collision_check import ContactInstances
 from retarget_core.refine.context import RefineContext
 
 SOURCE_CONTACT_M = 0.015  # ACCEPTANCE.md: a source contact is a hand within 1.5 cm of a part (at 1.80 m)
-_SIDE = {"left": "Left", "right": "Right"}
-_OTHER = {"left": "right", "right": "left"}
 
 
 def _segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
@@ -48,6 +45,21 @@ def _nearer_leg(ctx: RefineContext, gpos: Tensor, hand_joint: int) -> Tensor:
     return torch.where(d[0] <= d[1], torch.tensor(left), torch.tensor(right))
 
 
+def source_hand_distances(ctx: RefineContext) -> HandPartDistances:
+    """The source's hand-to-part distances ``(F, 2, P)`` on its own body: the contact detector's
+    (``ctx.self_contacts.distances``, the same definition as the judge's hand distances: on the held-out contact
+    clips both mark the same frames within 1.5 cm, measured), measured here when the context has none."""
+    found = ctx.self_contacts.distances
+    if found is not None and found.num_frames == ctx.source_view.num_frames:
+        return found
+    body = ctx.source_body
+    src_parts = body_parts(body, ctx.source_mapping)
+    grot, gpos = ctx.source_view.global_transforms()
+    with torch.no_grad():
+        posed = body.pose_vertices(grot, gpos)
+    return hand_part_distances(body, src_parts, posed)
+
+
 def judged_source_instances(ctx: RefineContext, rotations: Tensor, translations: Tensor) -> ContactInstances:
     """The judge's source contacts at the target's frames as (frame, hand segment, cluster) instances; a contact
     with the legs goes to the leg nearer the hand in the target's pose ``rotations (F, J, 4)``,
@@ -56,29 +68,33 @@ def judged_source_instances(ctx: RefineContext, rotations: Tensor, translations:
     src = ctx.source_view
     if src.num_frames != ctx.num_frames or ctx.num_frames == 0:
         return ContactInstances(e, e, e)
-    near = torch.from_numpy(hand_distances(ctx.source_body, ctx.source_mapping, src) < SOURCE_CONTACT_M)  # (F, 2, 4)
+    dist = source_hand_distances(ctx)
+    near = dist.distance * (REFERENCE_HEIGHT_M / ctx.source_body.height) < SOURCE_CONTACT_M  # (F, 2, P)
+    near &= dist.measured[None]
     if not bool(near.any()):
         return ContactInstances(e, e, e)
     with torch.no_grad():
         _, gpos = kinematics.forward_kinematics(ctx.target.skeleton.parents, rotations.float(), translations.float())
+    legs = [dist.parts.index(n) for n in ("left_leg", "right_leg") if n in dist.parts]
     frames, hands, clusters = [], [], []
-    for h, side in enumerate(HANDS):
-        seg = ctx.parts.find(f"{_SIDE[side]}Hand")
-        joint = ctx.target_mapping.joints.get(f"{_SIDE[side]}Hand")
+
+    def add(f: Tensor, seg: int, cluster: Tensor) -> None:
+        frames.append(f)
+        hands.append(torch.full_like(f, seg))
+        clusters.append(cluster)
+
+    for h, hand_name in enumerate(dist.hands):
+        seg = ctx.parts.find(hand_name)
+        joint = ctx.target_mapping.joints.get(hand_name)
         if seg is None or joint is None:
             continue
-        for c, part in enumerate(CONTACT_PARTS):
+        on_legs = torch.nonzero(near[:, h, legs].any(-1)).flatten() if legs else torch.zeros(0, dtype=torch.long)
+        if len(on_legs):
+            add(on_legs, seg, _nearer_leg(ctx, gpos, joint)[on_legs])
+        for c, part in enumerate(dist.parts):
             f = torch.nonzero(near[:, h, c]).flatten()
-            if len(f) == 0:
-                continue
-            if part == "legs":
-                cl = _nearer_leg(ctx, gpos, joint)[f]
-            else:
-                name = {"head": "head", "torso": "torso", "other_arm": f"{_OTHER[side]}_arm"}[part]
-                cl = torch.full_like(f, CLUSTERS.index(name))
-            frames.append(f)
-            hands.append(torch.full_like(f, seg))
-            clusters.append(cl)
+            if c not in legs and len(f):
+                add(f, seg, torch.full_like(f, CLUSTERS.index(part)))
     if not frames:
         return ContactInstances(e, e, e)
     return ContactInstances(torch.cat(frames), torch.cat(hands), torch.cat(clusters))
@@ -96,4 +112,4 @@ def merged_instances(found: ContactInstances, judged: ContactInstances) -> tuple
     return merged, added
 
 
-__all__ = ["SOURCE_CONTACT_M", "judged_source_instances", "merged_instances"]
+__all__ = ["SOURCE_CONTACT_M", "judged_source_instances", "merged_instances", "source_hand_distances"]

@@ -271,3 +271,27 @@ def test_judged_source_contacts_found_and_merged(bulky: Character) -> None:
     rest = Motion(sk, 30.0, sk.rest_rotations.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone())
     at_rest = judged_source_instances(_context(bulky, rest), rest.rotations, rest.translations)
     assert not any(c == torso for c in at_rest.cluster.tolist())  # hands away from the body at rest
+
+
+def test_culled_contact_rows_give_the_same_instance_distances(bulky: Character) -> None:
+    """The contact term measures only the (hand point, segment) pairs that can be an instance's nearest
+    (``near_contact_rows``): at the pose they were chosen on, every instance's distance is the full one's, with
+    fewer pairs measured."""
+    from retarget_core.refine.collision_energy import instance_distance, near_contact_rows
+    from retarget_core.refine.collisions import _contact_targets
+    from retarget_core.refine.judged_contacts import judged_source_instances
+    from retarget_core.refine.point_poser import PointPoser
+
+    near, _, _ = _hand_in_belly(bulky, 0.01, 3)
+    ctx = _context(bulky, near)
+    instances = judged_source_instances(ctx, near.rotations, near.translations)
+    assert instances.count >= 3
+    points = torch.arange(bulky.num_vertices)[::7]
+    frames = torch.arange(near.num_frames)
+    targets = _contact_targets(ctx, instances, frames, points)
+    poser = PointPoser(bulky, points, ctx.parts.joints)
+    posed, mats, _ = poser(roma.unitquat_to_rotmat(near.rotations.float()), near.translations.float())
+    full = instance_distance(ctx.sdf, targets, posed, mats)
+    culled = near_contact_rows(ctx.sdf, targets, posed, mats, 0.0)
+    assert torch.allclose(instance_distance(ctx.sdf, culled, posed, mats), full)
+    assert sum(len(r) for _, r in culled.segment_rows()) < sum(len(r) for _, r in targets.segment_rows())
