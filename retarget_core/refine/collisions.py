@@ -298,17 +298,23 @@ def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Ten
         point_part = torch.where(eligible[points], point_part, torch.full_like(point_part, -1))
     members = ctx.parts.cluster_members()
     segments = {ci: [s for s in members[name] if ctx.sdf.grids[s] is not None] for ci, name in enumerate(CLUSTERS)}
-    rows: list[tuple[int, int, int, int]] = []
-    kept: list[int] = []
-    for n, (f, h, c) in enumerate(zip(contacts.frame.tolist(), contacts.hand.tolist(), contacts.cluster.tolist(), strict=True)):
-        pts = torch.nonzero(point_part == h).flatten().tolist()
-        if pos_of[f] < 0 or not pts:
-            continue
-        rows.extend((int(pos_of[f]), p, c, len(kept)) for p in pts)
-        kept.append(n)
-    data = torch.tensor(rows, dtype=torch.long).reshape(-1, 4)
-    gap = contacts.gap[torch.tensor(kept, dtype=torch.long)] if contacts.gap is not None else None
-    return ContactTargets(data[:, 0], data[:, 1], data[:, 2], data[:, 3], torch.ones(len(kept)), segments, gap)
+    # Per hand segment, its points (ascending, -1 padded): each kept instance gets one row per point of its hand.
+    s_n = ctx.parts.num_parts
+    owned = point_part[None, :] == torch.arange(s_n)[:, None]  # (S, P)
+    counts = owned.sum(1)
+    table = torch.full((s_n, max(int(counts.max()) if len(points) else 0, 1)), -1, dtype=torch.long)
+    seg_of, col = torch.nonzero(owned, as_tuple=True)
+    table[seg_of, torch.arange(len(seg_of)) - torch.cumsum(counts, 0)[seg_of] + counts[seg_of]] = col
+    kept = torch.nonzero((pos_of[contacts.frame] >= 0) & (counts[contacts.hand] > 0)).flatten() if contacts.count else \
+        torch.zeros(0, dtype=torch.long)  # fmt: skip
+    pts = table.index_select(0, contacts.hand[kept])  # (K, maxP)
+    valid = pts >= 0
+    per = valid.sum(1)
+    frame = pos_of[contacts.frame[kept]].repeat_interleave(per)
+    cluster = contacts.cluster[kept].repeat_interleave(per)
+    instance = torch.arange(len(kept)).repeat_interleave(per)
+    gap = contacts.gap[kept] if contacts.gap is not None else None
+    return ContactTargets(frame, pts[valid], cluster, instance, torch.ones(len(kept)), segments, gap)
 
 
 def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, params: CollisionParams, scale: float,
