@@ -210,7 +210,7 @@ def evaluate(
         typer.Option(help="Methods to compare, repeatable (evaluation.METHODS): copy, collisions, foot_lock, "
                      "collisions+foot_lock, recurrent, recurrent[skeleton|foot|interpenetration] (networks trained "
                      "on part of the energy), recurrent+eso, recurrent+eso+collisions+foot_lock, full (the default "
-                     "chain)"),
+                     "chain), full[eso12] (the default chain with 12 ESO steps)"),
     ] = None,
     ablation: Annotated[
         bool, typer.Option(help="Add paper 1 table 3's rows (evaluation.ABLATION) to the methods")

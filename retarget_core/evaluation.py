@@ -58,6 +58,10 @@ METHODS.update({"recurrent": ("recurrent",), **{f"recurrent[{e}]": ("recurrent",
 METHOD_WEIGHTS: dict[str, Path] = {f"recurrent[{e}]": MODELS_DIR / f"recurrent-{e}.pt" for e in ABLATED_ENERGIES}
 """Methods that run the network with other weights than the shipped ones (``retarget train recurrent --energy
 E -o retarget_core/data/models/recurrent-E.pt``)."""
+METHODS["full[eso12]"] = METHODS["full"]
+METHOD_SETTINGS: dict[str, dict[str, int]] = {"full[eso12]": {"eso_iterations": 12}}
+"""Methods that run their stages with other job options than the defaults (``full[eso12]``: the default chain
+with 12 ESO steps instead of 30, the speed/quality comparison in docs/model-recurrent.md)."""
 ABLATION: tuple[str, ...] = (
     "copy", "recurrent[skeleton]", "recurrent[foot]", "recurrent[interpenetration]", "recurrent", "recurrent+eso",
     "recurrent+eso+collisions+foot_lock", "collisions+foot_lock",
@@ -69,7 +73,7 @@ energy (the shipped weights); + ESO; + collisions and foot lock; and collisions 
 def method_options(method: str, fps: float | None) -> RetargetOptions:
     """The job options of ``method``: its refinement stages on, the others off, contacts on."""
     stages = {n: n in METHODS[method] for n in REFINEMENT_STAGE_NAMES}
-    return RetargetOptions(fps=fps, stages={"contacts": True, **stages})
+    return RetargetOptions(fps=fps, stages={"contacts": True, **stages}, **METHOD_SETTINGS.get(method, {}))
 
 
 # --- what is tabled ------------------------------------------------------------------------------------------

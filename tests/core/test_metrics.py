@@ -499,3 +499,16 @@ def test_a_jittering_source_is_flagged_as_jitter(average_body) -> None:
     assert metrics.jerk_to_acceleration == pytest.approx(1.83, abs=0.2)
     assert [f.name for f in metrics.flags] == ["jitter"], metrics.flags
     assert "jitters" in warnings[0]
+
+
+def test_eval_methods_set_their_stages_and_options() -> None:
+    """A method turns on exactly its stages (contacts always), and a method with settings passes them on."""
+    from retarget_core.evaluation import METHODS, method_options
+    from retarget_core.stages import REFINEMENT_STAGE_NAMES
+
+    plain = method_options("collisions+foot_lock", 30.0)
+    assert {n for n in REFINEMENT_STAGE_NAMES if plain.stages.enabled(n)} == {"collisions", "foot_lock"}
+    assert plain.stages.enabled("contacts") and plain.eso_iterations == 30
+    fewer = method_options("full[eso12]", 30.0)
+    assert fewer.eso_iterations == 12
+    assert {n for n in REFINEMENT_STAGE_NAMES if fewer.stages.enabled(n)} == set(METHODS["full"])
