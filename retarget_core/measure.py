@@ -28,7 +28,7 @@ from retarget_core.contacts.correspondence import (
 )
 from retarget_core.contacts.foot_contact import FootContacts, detect_foot_contacts
 from retarget_core.contacts.self_contact import SelfContacts, detect_self_contacts
-from retarget_core.metrics.compute import ClipMeasures, compute_metrics
+from retarget_core.metrics.compute import ClipMeasures, compute_metrics, summarize
 from retarget_core.metrics.report import (
     ContactVertexPairs,
     MetricsReport,
@@ -174,7 +174,10 @@ def measure_job(
             source_hand_distances=hands,
         )
         after_metrics, after_measures = None, None
-        if after is not None:
+        if after is before:  # no stage changed the copy: the same measures, summarised against themselves
+            after_metrics = summarize(before_measures, before_measures, ref_measures, found.feet)
+            after_measures = before_measures
+        elif after is not None:
             after_metrics, after_measures = compute_metrics(
                 target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
                 reference=ref_measures, source_feet=found.feet, source_hand_distances=hands,

@@ -512,3 +512,25 @@ def test_eval_methods_set_their_stages_and_options() -> None:
     fewer = method_options("full[eso12]", 30.0)
     assert fewer.eso_iterations == 12
     assert {n for n in REFINEMENT_STAGE_NAMES if fewer.stages.enabled(n)} == set(METHODS["full"])
+
+
+def test_unchanged_after_reuses_the_before_measures() -> None:
+    """A job whose stages left the copy as it was is measured once: its "after" reads exactly as an equal
+    motion measured again would (timings apart)."""
+    from dataclasses import replace
+
+    from retarget_core.jobs import JobInputs
+    from retarget_core.metrics_summary import build_metrics
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import prepare, refine
+    from retarget_core.stages import REFINEMENT_STAGE_NAMES
+
+    samples = Path(__file__).resolve().parents[2] / "retarget_core" / "data" / "samples"
+    off = {n: False for n in REFINEMENT_STAGE_NAMES}
+    inputs = JobInputs(samples / "motions" / "007_03.bvh", samples / "characters" / "mh_male_bulky.glb",
+                       options=RetargetOptions(frame_end=40, stages=off))  # fmt: skip
+    result = refine(prepare(inputs))
+    assert result.after is result.prepared.before
+    once = build_metrics(result)
+    again = build_metrics(replace(result, after=replace(result.after)))
+    assert once["after"] == again["after"] and once["improvement"] == again["improvement"]
