@@ -185,25 +185,29 @@ class ContactTargets:
         return out
 
 
-def _row_distances(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor) -> tuple[Tensor, Tensor]:
-    """Signed distances ``(M,)`` (m) of the measured (pair row, segment) combinations and their rows ``(M,)``."""
+def _row_distances(sdf: PartSDF, targets: ContactTargets, posed: Tensor,
+                   seg_mats: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """Signed distances ``(M,)`` (m) of the measured (pair row, segment) combinations, their rows and segments
+    ``(M,)``."""
     p_n = posed.shape[1]
     flat = posed.reshape(-1, 3)
-    ds, rows = [], []
+    ds, rows, segs = [], [], []
     for j, sel in targets.segment_rows():
         f = targets.frame.index_select(0, sel)
         x = flat.index_select(0, f * p_n + targets.point.index_select(0, sel))
         r, t = seg_mats[:, j, :, :3].index_select(0, f), seg_mats[:, j, :, 3].index_select(0, f)
         ds.append(segment_distance(sdf, j, torch.einsum("nji,nj->ni", r, x - t)))
         rows.append(sel)
+        segs.append(torch.full_like(sel, j))
     if not ds:
-        return posed.new_zeros(0), torch.zeros(0, dtype=torch.long)
-    return torch.cat(ds), torch.cat(rows)
+        e = torch.zeros(0, dtype=torch.long)
+        return posed.new_zeros(0), e, e
+    return torch.cat(ds), torch.cat(rows), torch.cat(segs)
 
 
 def instance_distance(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor) -> Tensor:
     """``(K,)`` signed distance (m) of each contact instance's nearest hand point to its touched cluster."""
-    d, rows = _row_distances(sdf, targets, posed, seg_mats)
+    d, rows, _ = _row_distances(sdf, targets, posed, seg_mats)
     out = posed.new_full((targets.count,), float("inf"))
     return out.scatter_reduce(0, targets.instance.index_select(0, rows), d, "amin", include_self=True)
 
@@ -214,11 +218,10 @@ def near_contact_rows(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_
     instance's nearest at the given pose: the only ones that can become the nearest during the next few steps
     (no gradients; the same distances while they hold)."""
     with torch.no_grad():
-        d, rows = _row_distances(sdf, targets, posed, seg_mats)
+        d, rows, seg_of = _row_distances(sdf, targets, posed, seg_mats)
         inst = targets.instance.index_select(0, rows)
         best = d.new_full((targets.count,), float("inf")).scatter_reduce(0, inst, d, "amin", include_self=True)
         keep = d <= best.index_select(0, inst) + within
-        seg_of = torch.cat([torch.full((len(sel),), j, dtype=torch.long) for j, sel in targets.segment_rows()]) if len(rows) else rows
     tested = [(j, rows[keep & (seg_of == j)]) for j in torch.unique(seg_of[keep]).tolist()]
     return replace(targets, tested=tested)
 

@@ -115,7 +115,7 @@ def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: flo
     for f in range(posed.shape[0]):
         p = posed[f]
         queries = _frame_queries(setup, p, reach)  # tester part -> its vertices near the dragged skin
-        for t_name in {t for tester in queries for t in MESH_TARGETS[tester]}:
+        for t_name in dict.fromkeys(t for tester in queries for t in MESH_TARGETS[tester]):  # in a fixed order
             part = body.part(t_name)
             if part is None:
                 continue

@@ -305,8 +305,7 @@ def _contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Ten
     table = torch.full((s_n, max(int(counts.max()) if len(points) else 0, 1)), -1, dtype=torch.long)
     seg_of, col = torch.nonzero(owned, as_tuple=True)
     table[seg_of, torch.arange(len(seg_of)) - torch.cumsum(counts, 0)[seg_of] + counts[seg_of]] = col
-    kept = torch.nonzero((pos_of[contacts.frame] >= 0) & (counts[contacts.hand] > 0)).flatten() if contacts.count else \
-        torch.zeros(0, dtype=torch.long)  # fmt: skip
+    kept = torch.nonzero((pos_of[contacts.frame] >= 0) & (counts[contacts.hand] > 0)).flatten()
     pts = table.index_select(0, contacts.hand[kept])  # (K, maxP)
     valid = pts >= 0
     per = valid.sum(1)
