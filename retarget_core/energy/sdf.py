@@ -286,38 +286,64 @@ def _sample_grid(sdf: PartSDF, seg: int, x: Tensor, channel: int | None = None) 
     return p * seg_d + (1.0 - p) * char_d + outside
 
 
-def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor | None = None) -> PairSamples:
+def sample_pairs(
+    sdf: PartSDF,
+    posed: Tensor,
+    seg_mats: Tensor,
+    allowed: Tensor | None = None,
+    vertices: Tensor | None = None,
+    inside_only: bool = False,
+) -> PairSamples:
     """Blended signed distances of posed vertices ``(F, V, 3)`` to segments, for every allowed pair (vertex
     part i, segment j) where the vertex may lie within the grid margin of j. ``seg_mats (F, S, 3, 4)`` from
     :func:`segment_matrices`. Vertices not sampled are farther from the segment than the grid margin.
+    ``vertices (N,)``: when given, ``posed`` is ``(F, N, 3)``, those vertices only (they must include every
+    vertex of a part with an allowed pair); the samples still name vertices by their index in the mesh.
+    ``inside_only``: only clusters that may hold a vertex with a negative blended distance are sampled (a
+    depth check's needs; the blend is the segment channel alone, so positive, beyond the blend width).
 
     Culling, coarse to fine: the posed bounding box of part i against that of j's grid, per frame; then each
     cluster of nearby vertices (:class:`VertexClusters`), bounded by a sphere around its posed centroid,
     against j's grid box in j's frame; then the sphere against j's segment distance at its centre.
     """
     allowed = sdf.allowed if allowed is None else allowed
-    f_n, v_n = posed.shape[:2]
+    f_n, n_pts = posed.shape[:2]
+    vp = sdf.parts.vertex_part
+    v_n = vp.shape[0]
     s_n = sdf.parts.num_parts
-    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), sdf.parts.vertex_part, 0.04)
+    if sdf.clusters is None and vertices is not None:
+        raise ValueError("sample_pairs: a vertex subset needs the SDF's precomputed clusters")
+    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), vp, 0.04)
     rot = seg_mats[..., :3]  # (F, S, 3, 3)
     trans = seg_mats[..., 3]  # (F, S, 3)
     c_n = clusters.part.shape[0]
+    slot = None  # mesh vertex -> row of ``posed`` when a subset is given
+    reach = sdf.blend if inside_only else sdf.margin
     with torch.no_grad():
         p = posed.detach()
         r_all, t_all = rot.detach(), trans.detach()
-        vp = sdf.parts.vertex_part
-        idx = vp.view(1, v_n, 1).expand(f_n, v_n, 3)
-        p_lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amin")
-        p_hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, p, "amax")
+        # Only the vertices of parts with an allowed pair are bounded and clustered (a leg-only check skips
+        # the rest of the body); the others' boxes stay empty and their clusters are never candidates.
+        if vertices is None:
+            active = allowed.any(dim=1).index_select(0, vp)
+            sub = None if bool(active.all()) else torch.nonzero(active).flatten()
+            box_points = p if sub is None else p.index_select(1, sub)
+        else:
+            sub, box_points = vertices, p
+            slot = torch.full((v_n,), -1, dtype=torch.long).index_copy_(0, vertices, torch.arange(n_pts))
+        vp_a = vp if sub is None else vp.index_select(0, sub)
+        ov = clusters.of_vertex if sub is None else clusters.of_vertex.index_select(0, sub)
+        idx = vp_a.view(1, -1, 1).expand(f_n, -1, 3)
+        p_lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amin")
+        p_hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amax")
         corners = sdf.grid_corners().to(p.dtype)  # (S, 8, 3)
         posed_corners = torch.einsum("fsij,skj->fski", r_all, corners) + t_all[:, :, None, :]
         g_lo, g_hi = posed_corners.min(dim=2).values, posed_corners.max(dim=2).values
         overlap = ((p_lo[:, :, None] <= g_hi[:, None]) & (p_hi[:, :, None] >= g_lo[:, None])).all(-1)  # (F, Si, Sj)
         has_grid = torch.tensor([g is not None for g in sdf.grids])
         overlap &= allowed[None] & has_grid[None, None, :]
-        ov = clusters.of_vertex
-        counts = torch.bincount(ov, minlength=c_n).to(p.dtype)
-        centre = torch.zeros(f_n, c_n, 3, dtype=p.dtype).index_add_(1, ov, p) / counts[None, :, None]
+        counts = torch.bincount(ov, minlength=c_n).clamp_min(1).to(p.dtype)
+        centre = torch.zeros(f_n, c_n, 3, dtype=p.dtype).index_add_(1, ov, box_points) / counts[None, :, None]
         radius = clusters.radius.to(p.dtype)[None].expand(f_n, c_n)
         lo = sdf.origin.to(p.dtype)
         hi = lo + (sdf.size - 1).to(p.dtype) * sdf.voxel[:, None].to(p.dtype)
@@ -330,14 +356,15 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
             cand = overlap[:, :, j].contiguous().index_select(1, clusters.part)  # (F, C)
             f_c, c_sel = torch.nonzero(cand, as_tuple=True)  # candidate (frame, cluster)
             key = f_c * c_n + c_sel
-            r_j, t_j = r_all[:, j].index_select(0, f_c), t_all[:, j].index_select(0, f_c)
+            r_j = r_all[:, j].contiguous().index_select(0, f_c)
+            t_j = t_all[:, j].contiguous().index_select(0, f_c)
             centre_local = torch.einsum("nji,nj->ni", r_j, flat_centre.index_select(0, key) - t_j)
             rad = flat_radius.index_select(0, key)
             keep = (centre_local - centre_local.clamp(lo[j], hi[j])).norm(dim=-1) <= rad
             # The segment channel is 1-Lipschitz: a cluster whose centre is farther than margin + radius from
             # the segment has every vertex beyond the margin (where the blend is the segment channel alone).
             f_c, c_sel, centre_local, rad = f_c[keep], c_sel[keep], centre_local[keep], rad[keep]
-            keep = _sample_grid(sdf, j, centre_local, channel=0) - rad <= sdf.margin
+            keep = _sample_grid(sdf, j, centre_local, channel=0) - rad <= reach
             f_c, c_sel = f_c[keep], c_sel[keep]
             if len(f_c) == 0:
                 continue
@@ -345,8 +372,10 @@ def sample_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor 
             valid = mem >= 0
             f_idx = f_c[:, None].expand_as(mem).masked_select(valid)
             v_idx = mem.masked_select(valid)
-        x = flat_posed.index_select(0, f_idx * v_n + v_idx)
-        local = torch.einsum("nji,nj->ni", rot[:, j].index_select(0, f_idx), x - trans[:, j].index_select(0, f_idx))
+        rows = v_idx if slot is None else slot.index_select(0, v_idx)
+        x = flat_posed.index_select(0, f_idx * n_pts + rows)
+        rot_j, trans_j = rot[:, j].contiguous(), trans[:, j].contiguous()
+        local = torch.einsum("nji,nj->ni", rot_j.index_select(0, f_idx), x - trans_j.index_select(0, f_idx))
         frames.append(f_idx)
         verts.append(v_idx)
         segs.append(torch.full_like(f_idx, j))

@@ -516,13 +516,11 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
     grot, gpos = motion.global_transforms()
     grot, gpos = grot[frames], gpos[frames]
     with torch.no_grad():
-        # Only leg vertices are tested: pose those alone (the others stay at 0, never sampled).
-        limb_part = legs[parts.vertex_part]
-        index = torch.nonzero(limb_part).flatten()
-        posed = gpos.new_zeros(len(frames), ctx.target.num_vertices, 3)
-        posed[:, index] = _pose_subset(ctx.target, index, grot, gpos)
+        # Only leg vertices are tested: pose those alone.
+        index = torch.nonzero(legs[parts.vertex_part]).flatten()
+        posed = _pose_subset(ctx.target, index, grot, gpos)
         mats = segment_matrices(ctx.target, parts, grot, gpos)
-        samples = sample_pairs(ctx.sdf, posed, mats, allowed)
+        samples = sample_pairs(ctx.sdf, posed, mats, allowed, vertices=index, inside_only=True)
         depth = effective_depth(ctx.sdf, samples)
     f_n = int(frames.numel())
     frame_max = torch.zeros(f_n).scatter_reduce(0, samples.frame, depth, "amax", include_self=True)

@@ -119,6 +119,28 @@ def test_box_penetration_depth_is_measured(boxes, depth: float) -> None:
     assert float(dist[hips, hand]) == pytest.approx(-min(depth, SMALL - depth, SMALL / 2), abs=1e-3)
 
 
+@pytest.mark.parametrize("depth", [-0.005, 0.01, 0.03])
+def test_pair_samples_of_a_vertex_subset_inside_only(boxes, depth: float) -> None:
+    """Posing only the hand box's vertices (the parts with an allowed pair) and sampling inside points only
+    finds the same penetrating samples, at the same distances, as sampling the whole mesh."""
+    ch, _, parts, sdf = boxes
+    verts, mats = _pose(ch, parts, depth)
+    hand = parts.index("LeftHand")
+    allowed = sdf.allowed.clone()
+    allowed[torch.arange(parts.num_parts) != hand] = False
+    full = sample_pairs(sdf, verts, mats, allowed)
+    subset = torch.nonzero(parts.vertex_part == hand).flatten()
+    part = sample_pairs(sdf, verts[:, subset], mats, allowed, vertices=subset, inside_only=True)
+
+    def inside(s):  # type: ignore[no-untyped-def]
+        keep = s.distance < 0
+        return sorted(zip(s.vertex[keep].tolist(), s.part[keep].tolist(), s.distance[keep].tolist(), strict=True))
+
+    assert inside(part) == inside(full)
+    assert (len(inside(full)) > 0) == (depth > 0)
+    assert len(part.frame) <= len(full.frame)
+
+
 def test_boxes_apart_do_not_penetrate(boxes) -> None:
     ch, _, parts, sdf = boxes
     verts, mats = _pose(ch, parts, -0.005)  # a 5 mm gap
