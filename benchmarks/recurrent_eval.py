@@ -3,6 +3,7 @@ bodies: shared mh_* characters, which no training body is). Prints a table and w
 benchmarks/results/recurrent_eval.json. Run under the heavy lock:
 
     flock /tmp/heavy.lock python benchmarks/recurrent_eval.py [--frames 300] [--bodies mh_male_bulky ...]
+        [--weights other.pt --out benchmarks/results/recurrent_eval_other.json]
 """
 
 from __future__ import annotations
@@ -10,11 +11,13 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
 from retarget_core.measure import measure_job
+from retarget_core.model import inference
 from retarget_core.model.case import context_from_prepared, prepared_case
 from retarget_core.model.data import HELD_OUT_CLIPS
 from retarget_core.refine import eso, recurrent
@@ -43,8 +46,6 @@ def main() -> None:
     ap.add_argument("--weights", type=Path, default=None, help="weights to evaluate (default: the shipped ones)")
     args = ap.parse_args()
     if args.weights is not None:
-        from retarget_core.model import inference
-
         inference.WEIGHTS_PATH = args.weights
     torch.set_num_threads(1)
     rows = []
@@ -79,7 +80,8 @@ def main() -> None:
         means[m] = {k: _mean([r[m][k] for r in rows]) for k, _ in FIGURES}
     means["ms_per_frame"] = {"network": _mean([r["network_ms_per_frame"] for r in rows]), "eso": _mean([r["eso_ms_per_frame"] for r in rows])}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"rows": rows, "means": means, "torch_threads": 1}, indent=1))
+    weights = {"path": str(args.weights or inference.WEIGHTS_PATH.relative_to(REPO)), "config": asdict(inference.shipped_network().config)}
+    args.out.write_text(json.dumps({"rows": rows, "means": means, "torch_threads": 1, "weights": weights}, indent=1))
     print(json.dumps(means, indent=1))
 
 

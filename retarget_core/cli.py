@@ -209,8 +209,9 @@ def evaluate(
         list[str] | None,
         typer.Option(help="Methods to compare, repeatable (evaluation.METHODS): copy, collisions, foot_lock, "
                      "collisions+foot_lock, recurrent, recurrent[skeleton|foot|interpenetration] (networks trained "
-                     "on part of the energy), recurrent+eso, recurrent+eso+collisions+foot_lock, full (the default "
-                     "chain), full[eso12] (the default chain with 12 ESO steps)"),
+                     "on part of the energy), recurrent[pointnet] (PointNet geometry code), recurrent+eso, "
+                     "recurrent+eso+collisions+foot_lock, full (the default chain), full[eso12] (the default chain "
+                     "with 12 ESO steps)"),
     ] = None,
     ablation: Annotated[
         bool, typer.Option(help="Add paper 1 table 3's rows (evaluation.ABLATION) to the methods")
@@ -305,15 +306,20 @@ def train_recurrent(
     ik_share: Annotated[float, typer.Option(help="Share of windows drawn from the IK contact windows")] = 0.3,
     energy: Annotated[str, typer.Option(help="Energy trained on (paper 1 table 3's ablation): skeleton, foot "
                                             "(+ foot), interpenetration (+ interpenetration) or full")] = "full",
+    geometry: Annotated[str, typer.Option(help="Body shape code: girths (per-segment girths, the shipped weights) "
+                                              "or pointnet (a PointNet over rest vertices and skin weights)")] = "girths",
 ) -> None:
     """Train the geometry-conditioned recurrent retargeter on the energy and write its weights."""
+    from retarget_core.model.network import GEOMETRIES, NetworkConfig
     from retarget_core.model.train_recurrent import ENERGY_TERMS, TrainConfig, train, with_energy
 
     _start_training(clips, threads, log)
     if energy not in ENERGY_TERMS:
         _fail(f"unknown energy {energy!r}; one of {', '.join(ENERGY_TERMS)}")
+    if geometry not in GEOMETRIES:
+        _fail(f"unknown geometry {geometry!r}; one of {', '.join(GEOMETRIES)}")
     cfg = TrainConfig(seed=seed, steps=steps, max_minutes=minutes, batch=batch, bodies=bodies, ik_windows=ik_windows,
-                      w_contact=contact_weight, ik_share=ik_share)  # fmt: skip
+                      w_contact=contact_weight, ik_share=ik_share, network=NetworkConfig(geometry=geometry))  # fmt: skip
     _trained(out, train(clips, out, with_energy(cfg, energy), cache_dir.expanduser(), log), 4)
 
 

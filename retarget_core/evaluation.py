@@ -57,7 +57,10 @@ ABLATED_ENERGIES: tuple[str, ...] = ("skeleton", "foot", "interpenetration")
 METHODS.update({"recurrent": ("recurrent",), **{f"recurrent[{e}]": ("recurrent",) for e in ABLATED_ENERGIES}})
 METHOD_WEIGHTS: dict[str, Path] = {f"recurrent[{e}]": MODELS_DIR / f"recurrent-{e}.pt" for e in ABLATED_ENERGIES}
 """Methods that run the network with other weights than the shipped ones (``retarget train recurrent --energy
-E -o retarget_core/data/models/recurrent-E.pt``)."""
+E -o retarget_core/data/models/recurrent-E.pt``; ``recurrent[pointnet]``: ``--geometry pointnet -o
+retarget_core/data/models/recurrent-pointnet.pt``, the PointNet geometry code, docs/model-recurrent.md)."""
+METHODS["recurrent[pointnet]"] = ("recurrent",)
+METHOD_WEIGHTS["recurrent[pointnet]"] = MODELS_DIR / "recurrent-pointnet.pt"
 METHODS["full[eso12]"] = METHODS["full"]
 METHOD_SETTINGS: dict[str, dict[str, int]] = {"full[eso12]": {"eso_iterations": 12}}
 """Methods that run their stages with other job options than the defaults (``full[eso12]``: the default chain

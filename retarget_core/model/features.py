@@ -10,8 +10,10 @@ Source motion features, per frame ``(F, SOURCE_DIM)``, facing-invariant (express
 Target code, per body ``(TARGET_DIM,)``: the rest canonical joint positions relative to the hips / height
 (22 x 3), per-segment girths (mean and max distance of the segment's dominant vertices from its bone line, /
 height, 22 x 2) and the height / 1.80 m (1). Girths need only the skin weights and rest vertices, so they work
-for any mesh topology and cost milliseconds (a PointNet over rest vertices, the paper's choice, needs many
-bodies to learn what girths state directly; we have a handful).
+for any mesh topology and cost milliseconds. Optionally (``NetworkConfig.geometry = "pointnet"``, the paper's
+choice) the network replaces the girths by a PointNet code over the rig's geometry points ``(POINTS, POINT_DIM)``:
+a fixed, seeded subsample of rest vertices, each its position relative to the hips / height (3) and its skin
+weight summed per canonical joint (22) (:func:`geometry_points`).
 
 Outputs: a residual rotation per canonical joint in 6D (zero = identity), applied in the joint's rest world
 frame on top of the copy's local rotation, and a root offset (heading frame, in heights) added to the copy's
@@ -37,6 +39,11 @@ from retarget_core.skeleton import Skeleton
 NUM_CANONICAL = len(CANONICAL_JOINTS)
 SOURCE_DIM = NUM_CANONICAL * 6 + NUM_CANONICAL * 3 + 5
 TARGET_DIM = NUM_CANONICAL * 3 + NUM_CANONICAL * 2 + 1
+GIRTHS = slice(NUM_CANONICAL * 3, NUM_CANONICAL * 5)
+"""Where the girths lie in the target code (the PointNet variant reads the code without them)."""
+POINTS = 2048
+POINT_DIM = 3 + NUM_CANONICAL
+POINTS_SEED = 0
 REFERENCE_HEIGHT_M = 1.80
 IDENTITY_6D = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
 
@@ -86,7 +93,8 @@ class TargetRig:
     """What the network needs of one target body: its canonical joints, rest frames and code.
 
     joints: ``(22,)`` skeleton index per canonical joint (-1 missing); rest_world_rot: ``(J, 4)``;
-    code: ``(TARGET_DIM,)``; height (m); root: the joint carrying root motion."""
+    code: ``(TARGET_DIM,)``; height (m); root: the joint carrying root motion; points: ``(POINTS, POINT_DIM)``
+    the geometry points of :func:`geometry_points`."""
 
     skeleton: Skeleton
     mapping: JointMapping
@@ -96,6 +104,7 @@ class TargetRig:
     code: Tensor
     height: float
     root: int
+    points: Tensor
 
 
 def segment_girths(rest_pos: Tensor, vertices: Tensor, parts: BodyParts, mapping: JointMapping, height: float) -> Tensor:
@@ -117,6 +126,24 @@ def segment_girths(rest_pos: Tensor, vertices: Tensor, parts: BodyParts, mapping
     return out
 
 
+def point_sample(num_vertices: int, count: int = POINTS, seed: int = POINTS_SEED) -> Tensor:
+    """``count`` vertex indices ``(count,)``: a seeded random subset, every vertex repeated in turn to fill up
+    when the mesh has fewer (a max pool is blind to repeats)."""
+    order = torch.randperm(num_vertices, generator=torch.Generator().manual_seed(seed))
+    return order.repeat(-(-count // num_vertices))[:count]
+
+
+def geometry_points(rest_pos: Tensor, vertices: Tensor, parts: BodyParts, mapping: JointMapping, height: float) -> Tensor:
+    """PointNet input ``(POINTS, POINT_DIM)``: sampled rest vertices ``(V, 3)`` relative to the hips / height,
+    and each one's skin weight per canonical joint (the segment weights of ``parts``; 0 for unmapped ones)."""
+    idx = point_sample(vertices.shape[0])
+    hips = rest_pos[mapping.joints["Hips"]]
+    weights = torch.zeros(len(idx), NUM_CANONICAL)
+    cols = torch.tensor([CANONICAL_JOINTS.index(n) for n in parts.names], dtype=torch.long)
+    weights[:, cols] = parts.weights[idx].float()
+    return torch.cat([(vertices[idx].float() - hips) / height, weights], dim=-1)
+
+
 def target_rig(skeleton: Skeleton, mapping: JointMapping, vertices: Tensor, parts: BodyParts) -> TargetRig:
     """The :class:`TargetRig` of a body (rest ``vertices (V, 3)`` in the skeleton's rest pose)."""
     rest_rot, rest_pos = skeleton.rest_global()
@@ -128,7 +155,8 @@ def target_rig(skeleton: Skeleton, mapping: JointMapping, vertices: Tensor, part
     offsets[ok] = (rest_pos[joints[ok]] - hips) / height
     girths = segment_girths(rest_pos, vertices.float(), parts, mapping, height)
     code = torch.cat([offsets.reshape(-1), girths.reshape(-1), torch.tensor([height / REFERENCE_HEIGHT_M])])
-    return TargetRig(skeleton, mapping, joints, rest_rot, rest_pos, code.float(), height, root_joint(skeleton, mapping))
+    points = geometry_points(rest_pos.float(), vertices, parts, mapping, height)
+    return TargetRig(skeleton, mapping, joints, rest_rot, rest_pos, code.float(), height, root_joint(skeleton, mapping), points)
 
 
 def source_features(
@@ -193,15 +221,20 @@ def source_canonical_positions(skeleton: Skeleton, mapping: JointMapping, rotati
 
 
 __all__ = [
+    "GIRTHS",
     "IDENTITY_6D",
     "NUM_CANONICAL",
+    "POINTS",
+    "POINT_DIM",
     "SOURCE_DIM",
     "TARGET_DIM",
     "TargetRig",
     "apply_residual",
     "canonical_indices",
     "from_6d",
+    "geometry_points",
     "heading",
+    "point_sample",
     "root_joint",
     "segment_girths",
     "source_canonical_positions",

@@ -57,7 +57,8 @@ def _load(device: str, path: str) -> RecurrentRetargeter:
 @dataclass
 class NetworkInputs:
     """Inputs of one clip on one target: features ``(1, F, SOURCE_DIM)``, heading ``(1, F, 4)``, the copy
-    ``(1, F, J, 4|3)``, the target code ``(1, TARGET_DIM)`` and the rig."""
+    ``(1, F, J, 4|3)``, the target code ``(1, TARGET_DIM)``, the rig and its geometry points
+    ``(1, POINTS, POINT_DIM)`` (read by a "pointnet" network only)."""
 
     rig: TargetRig
     features: Tensor
@@ -65,6 +66,7 @@ class NetworkInputs:
     copy_rot: Tensor
     copy_trans: Tensor
     code: Tensor
+    points: Tensor | None = None
 
 
 def network_inputs(ctx: RefineContext, base: Motion | None = None) -> NetworkInputs:
@@ -76,7 +78,7 @@ def network_inputs(ctx: RefineContext, base: Motion | None = None) -> NetworkInp
     copy_rot = base.rotations.float()[None].to(ctx.device)
     copy_trans = base.translations.float()[None].to(ctx.device)
     feats, head = source_features(rig, copy_rot, copy_trans, src_pos.float()[None].to(ctx.device), ctx.source_body.height)
-    return NetworkInputs(rig, feats, head, copy_rot, copy_trans, rig.code[None].to(ctx.device))
+    return NetworkInputs(rig, feats, head, copy_rot, copy_trans, rig.code[None].to(ctx.device), rig.points[None].to(ctx.device))
 
 
 def decode_motion(model: RecurrentRetargeter, inputs: NetworkInputs, states: Tensor, embedding: Tensor) -> tuple[Tensor, Tensor]:
@@ -91,7 +93,7 @@ def run_network(model: RecurrentRetargeter, inputs: NetworkInputs) -> tuple[Tens
     embedding ``(1, E)`` (no gradients)."""
     with torch.no_grad():
         states = model.encode(inputs.features)
-        emb = model.embed(inputs.code)
+        emb = model.embed(inputs.code, inputs.points)
         r, t = decode_motion(model, inputs, states, emb)
     return r, t, states, emb
 

@@ -2,6 +2,8 @@
 
     source features (B, F, SOURCE_DIM) -> normalise -> Linear -> encoder GRU (L x H) -> h_enc (B, F, H)
     target code (B, TARGET_DIM)        -> normalise -> MLP -> e (B, E)
+      (geometry "pointnet": the code without its girths, and a PointNet code of the geometry points
+       (B, POINTS, POINT_DIM) -> shared MLP -> max pool -> Linear -> (B, point_code), into the MLP)
     [h_enc, e] -> decoder GRU (L x H) -> linear heads: residual rotations (B, F, 22, 6), root offset (B, F, 3)
 
 Differences from the paper: 2 x 128 units instead of 2 x 512 (about 16x fewer recurrent weights: 0.5 M
@@ -20,18 +22,51 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from retarget_core.model.features import NUM_CANONICAL, SOURCE_DIM, TARGET_DIM
+from retarget_core.model.features import GIRTHS, NUM_CANONICAL, POINT_DIM, SOURCE_DIM, TARGET_DIM
+
+GEOMETRIES = ("girths", "pointnet")
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
     """Sizes. hidden: GRU units per layer; layers: GRU layers (encoder and decoder each); code: width of the
-    target code embedding; dropout: between GRU layers and on the embedding (paper: 0.1)."""
+    target code embedding; dropout: between GRU layers and on the embedding (paper: 0.1); geometry: how the
+    body's shape enters the target code, "girths" (per-segment girths, the shipped weights) or "pointnet" (a
+    PointNet over sampled rest vertices and skin weights instead); point_hidden, point_code: the PointNet's
+    shared-MLP width and output width."""
 
     hidden: int = 128
     layers: int = 2
     code: int = 64
     dropout: float = 0.1
+    geometry: str = "girths"
+    point_hidden: int = 64
+    point_code: int = 32
+
+    def __post_init__(self) -> None:
+        if self.geometry not in GEOMETRIES:
+            raise ValueError(f"unknown geometry {self.geometry!r}; one of {', '.join(GEOMETRIES)}")
+
+
+class PointNet(nn.Module):
+    """Shared MLP over points ``(B, N, POINT_DIM)``, max pool, linear: a code ``(B, out)`` blind to the point
+    order and count, so any mesh topology works."""
+
+    def __init__(self, hidden: int, out: int) -> None:
+        super().__init__()
+        self.shared = nn.Sequential(nn.Linear(POINT_DIM, hidden), nn.ReLU(), nn.Linear(hidden, 2 * hidden), nn.ReLU())
+        self.out = nn.Linear(2 * hidden, out)
+
+    def forward(self, points: Tensor) -> Tensor:
+        return self.out(self.shared(points).amax(dim=-2))
+
+
+def _code_columns(geometry: str) -> Tensor:
+    """The target code's columns the embedding reads: all of them, or all but the girths for "pointnet"."""
+    keep = torch.ones(TARGET_DIM, dtype=torch.bool)
+    if geometry == "pointnet":
+        keep[GIRTHS] = False
+    return keep.nonzero()[:, 0]
 
 
 class RecurrentRetargeter(nn.Module):
@@ -41,6 +76,7 @@ class RecurrentRetargeter(nn.Module):
     source_std: Tensor
     target_mean: Tensor
     target_std: Tensor
+    code_columns: Tensor
 
     def __init__(self, config: NetworkConfig | None = None) -> None:
         super().__init__()
@@ -50,10 +86,13 @@ class RecurrentRetargeter(nn.Module):
         self.register_buffer("source_std", torch.ones(SOURCE_DIM))
         self.register_buffer("target_mean", torch.zeros(TARGET_DIM))
         self.register_buffer("target_std", torch.ones(TARGET_DIM))
+        self.register_buffer("code_columns", _code_columns(c.geometry), persistent=False)
+        self.pointnet = PointNet(c.point_hidden, c.point_code) if c.geometry == "pointnet" else None
+        code_in = len(self.code_columns) + (c.point_code if self.pointnet is not None else 0)
         self.source_in = nn.Linear(SOURCE_DIM, c.hidden)
         self.encoder = nn.GRU(c.hidden, c.hidden, c.layers, batch_first=True, dropout=c.dropout)
         self.target_in = nn.Sequential(
-            nn.Linear(TARGET_DIM, c.code), nn.ReLU(), nn.Dropout(c.dropout), nn.Linear(c.code, c.code), nn.ReLU()
+            nn.Linear(code_in, c.code), nn.ReLU(), nn.Dropout(c.dropout), nn.Linear(c.code, c.code), nn.ReLU()
         )
         self.decoder = nn.GRU(c.hidden + c.code, c.hidden, c.layers, batch_first=True, dropout=c.dropout)
         self.rotation_head = nn.Linear(c.hidden, NUM_CANONICAL * 6)
@@ -78,9 +117,15 @@ class RecurrentRetargeter(nn.Module):
         h, _ = self.encoder(torch.relu(x))
         return h
 
-    def embed(self, target: Tensor) -> Tensor:
-        """Target embedding ``(B, E)`` of target codes ``(B, TARGET_DIM)``."""
-        return self.target_in((target - self.target_mean) / self.target_std)
+    def embed(self, target: Tensor, points: Tensor | None = None) -> Tensor:
+        """Target embedding ``(B, E)`` of target codes ``(B, TARGET_DIM)`` and, for the "pointnet" geometry,
+        the geometry points ``(B or 1, POINTS, POINT_DIM)`` (one body's points serve the whole batch)."""
+        x = ((target - self.target_mean) / self.target_std)[:, self.code_columns]
+        if self.pointnet is not None:
+            if points is None:
+                raise ValueError("a pointnet network needs the geometry points (TargetRig.points)")
+            x = torch.cat([x, self.pointnet(points).expand(x.shape[0], -1)], dim=-1)
+        return self.target_in(x)
 
     def decode(self, states: Tensor, embedding: Tensor) -> tuple[Tensor, Tensor]:
         """Residual rotations ``(B, F, 22, 6)`` and root offsets ``(B, F, 3)`` from encoder states and the
@@ -90,8 +135,8 @@ class RecurrentRetargeter(nn.Module):
         rot6 = self.rotation_head(h).view(*h.shape[:2], NUM_CANONICAL, 6)
         return rot6, self.root_head(h)
 
-    def forward(self, source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
-        return self.decode(self.encode(source), self.embed(target))
+    def forward(self, source: Tensor, target: Tensor, points: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return self.decode(self.encode(source), self.embed(target, points))
 
 
 def save_network(model: RecurrentRetargeter, path: str | Path, meta: dict[str, Any]) -> None:
@@ -111,4 +156,4 @@ def load_network(path: str | Path, device: torch.device | str = "cpu") -> tuple[
     return model.to(device), dict(blob.get("meta", {}))
 
 
-__all__ = ["NetworkConfig", "RecurrentRetargeter", "load_network", "save_network"]
+__all__ = ["GEOMETRIES", "NetworkConfig", "PointNet", "RecurrentRetargeter", "load_network", "save_network"]

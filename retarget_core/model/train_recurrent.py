@@ -140,7 +140,7 @@ def window_loss(
     rig = kit.rig
     feats, head = source_features(rig, batch.copy_rot, batch.copy_trans, batch.source_pos, batch.source_height[:, None, None, None])
     code = rig.code[None].expand(feats.shape[0], -1)
-    rot6, root_offset = model(feats, code)
+    rot6, root_offset = model(feats, code, rig.points[None])
     new_rot, new_trans = apply_residual(rig, batch.copy_rot, batch.copy_trans, head, rot6, root_offset)
     b_n, t_n = new_rot.shape[:2]
     grot, gpos = forward_kinematics(rig.skeleton.parents, new_rot, new_trans)

@@ -50,21 +50,22 @@ def test_untrained_network_reproduces_the_copy(ctx: RefineContext) -> None:
     assert torch.allclose(trans, ctx.before.translations.float(), atol=1e-6)
 
 
-def test_smoke_training_changes_the_output(samples: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("geometry", ["girths", "pointnet"])
+def test_smoke_training_changes_the_output(samples: Path, tmp_path: Path, geometry: str) -> None:
     torch.set_num_threads(1)
     body = BodyParams(name="smoke", gender=0.0, weight=0.9, muscle=0.6, height=1.62)
     data = build_dataset([samples / "motions" / "007_03.bvh"], [body], ik_windows=1, ik_length=30, seed=0, max_clip_frames=70)
     assert {s.kind for s in data.sequences} == {"clip", "mirror", "ik"}
     batch = draw_windows(data, 0, 2, 20, np.random.default_rng(0), 0.5, (0.8, 1.25))
     assert batch.copy_rot.shape[:2] == (2, 20)
-    cfg = TrainConfig(steps=3, batch=2, window=20, network=NetworkConfig(hidden=32, code=16))
+    cfg = TrainConfig(steps=3, batch=2, window=20, network=NetworkConfig(hidden=32, code=16, geometry=geometry))
     out = tmp_path / "w.pt"
     summary = train(Path("unused"), out, cfg, tmp_path, tmp_path / "log.jsonl", data=data)
     assert summary["steps"] == 3
     lines = (tmp_path / "log.jsonl").read_text().splitlines()
     assert len(lines) == 3 and all(np.isfinite(json.loads(x)["loss"]) for x in lines)
     model, meta = load_network(out)
-    assert meta["steps"] == 3
+    assert meta["steps"] == 3 and model.config.geometry == meta["config"]["network"]["geometry"] == geometry
     # Training moved the zero-initialised heads away from zero.
     assert float(model.rotation_head.weight.abs().sum()) > 0
 
@@ -146,3 +147,37 @@ def test_network_weights_override_is_scoped(ctx: RefineContext, tmp_path: Path) 
         inside = inference.shipped_network()
     assert inside is not shipped and inside.config.hidden == 32
     assert inference.shipped_network() is shipped
+
+
+def test_pointnet_network_reproduces_the_copy_and_round_trips(ctx: RefineContext, tmp_path: Path) -> None:
+    from retarget_core.model.features import POINT_DIM, POINTS
+    from retarget_core.model.network import save_network
+
+    torch.manual_seed(0)
+    config = NetworkConfig(hidden=32, code=16, geometry="pointnet", point_hidden=16, point_code=8)
+    model = RecurrentRetargeter(config).eval()
+    inputs = inference.network_inputs(ctx)
+    assert inputs.points is not None and inputs.points.shape == (1, POINTS, POINT_DIM)
+    rot, trans, _, emb = inference.run_network(model, inputs)
+    assert torch.allclose(rot, ctx.before.rotations.float(), atol=1e-6)
+    assert torch.allclose(trans, ctx.before.translations.float(), atol=1e-6)
+    # The embedding reads the points: other points, another embedding.
+    other = model.embed(inputs.code, inputs.points * 1.1)
+    assert not torch.allclose(emb, other)
+    with pytest.raises(ValueError, match="geometry points"):
+        model.embed(inputs.code)
+    path = tmp_path / "pointnet.pt"
+    save_network(model, path, {"steps": 0})
+    back, _ = load_network(path)
+    assert back.config == config and back.pointnet is not None
+    assert torch.equal(back.embed(inputs.code, inputs.points), emb)
+
+
+def test_geometry_points_are_seeded_and_fill_small_meshes() -> None:
+    from retarget_core.model.features import point_sample
+
+    assert torch.equal(point_sample(5000, 64), point_sample(5000, 64))
+    small = point_sample(10, 25)
+    assert small.shape == (25,) and set(small.tolist()) == set(range(10))
+    with pytest.raises(ValueError, match="unknown geometry"):
+        NetworkConfig(geometry="voxels")
