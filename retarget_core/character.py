@@ -68,6 +68,25 @@ class Character:
         mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
         return kinematics.linear_blend_skinning(self.vertices, self.dense_weights(), mats)
 
+    def pose_vertex_subset(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
+                           chunk: int = 64) -> Tensor:  # fmt: skip
+        """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` only (LBS on the joints that skin them),
+        from world joint transforms ``(F, J, 4)`` and ``(F, J, 3)``, ``chunk`` frames at a time."""
+        weights = self.dense_weights()[index]  # (N, J)
+        used = torch.nonzero(weights.sum(0) > 0).flatten()
+        rest_rot, rest_pos = self.skeleton.rest_global()
+        w = weights[:, used]
+        out = []
+        for s in range(0, global_rotations.shape[0], chunk):
+            mats = kinematics.skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[s : s + chunk, used],
+                                                global_positions[s : s + chunk, used])  # fmt: skip
+            blended = torch.einsum("nj,fjab->fnab", w.to(mats.dtype), mats)  # (f, N, 3, 4)
+            rest = self.vertices[index].to(mats.dtype)
+            out.append(torch.einsum("fnab,nb->fna", blended[..., :3], rest) + blended[..., 3])
+        if not out:
+            return self.vertices.new_zeros(0, len(index), 3)
+        return torch.cat(out)
+
     def vertex_normals(self) -> Tensor:
         """Area-weighted unit vertex normals ``(V, 3)`` of the rest mesh."""
         tri = self.vertices[self.faces]

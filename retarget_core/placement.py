@@ -18,7 +18,7 @@ from torch import Tensor
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.foot_contact import FootContacts
-from retarget_core.metrics.feet_acceptance import foot_vertices, pose_subset
+from retarget_core.metrics.feet_acceptance import foot_vertices
 from retarget_core.motion import Motion
 
 REFERENCE_HEIGHT_M = 1.80
@@ -54,7 +54,7 @@ def lowest_foot_vertex(character: Character, mapping: JointMapping, motion: Moti
     feet = foot_vertices(character, mapping)
     index = torch.cat([feet.left, feet.right])
     grot, gpos = motion.global_transforms()
-    return pose_subset(character, index, grot, gpos)[..., 1].amin(-1)
+    return character.pose_vertex_subset(index, grot, gpos)[..., 1].amin(-1)
 
 
 def floor_shift(lowest: Tensor, planted: Tensor, height: float) -> float:

@@ -28,7 +28,6 @@ from torch import Tensor
 from retarget_core.body_parts import BodyParts, body_parts
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
-from retarget_core.kinematics import skinning_matrices
 from retarget_core.motion import Motion
 
 REFERENCE_HEIGHT_M = 1.80  # every length of ACCEPTANCE.md is at a 1.80 m character
@@ -65,18 +64,6 @@ def foot_vertices_of(parts: BodyParts) -> FootVertices:
             mask |= parts.vertex_part == s
         out.append(torch.nonzero(mask).flatten())
     return FootVertices(out[0], out[1])
-
-
-def pose_subset(character: Character, vertex_index: Tensor, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
-    """Posed positions ``(F, N, 3)`` of the vertices ``vertex_index (N,)`` only (LBS on the joints that skin
-    them), from world joint transforms ``(F, J, 4)`` and ``(F, J, 3)``."""
-    weights = character.dense_weights()[vertex_index]  # (N, J)
-    used = torch.nonzero(weights.sum(0) > 0).flatten()
-    rest_rot, rest_pos = character.skeleton.rest_global()
-    mats = skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[:, used], global_positions[:, used])
-    blended = torch.einsum("nj,fjab->fnab", weights[:, used].to(mats.dtype), mats)  # (F, N, 3, 4)
-    rest = character.vertices[vertex_index].to(mats.dtype)
-    return torch.einsum("fnab,nb->fna", blended[..., :3], rest) + blended[..., 3]
 
 
 def _majority(labels: Tensor, window: int = MAJORITY_WINDOW) -> Tensor:
@@ -143,7 +130,7 @@ def lowest_foot_heights(character: Character, mapping: JointMapping, motion: Mot
     """``(F, 2)`` height of the lowest vertex of each foot (m, on the body's own scale)."""
     grot, gpos = motion.global_transforms()
     feet = foot_vertices(character, mapping)
-    return torch.stack([pose_subset(character, v, grot, gpos)[..., 1].amin(-1) for v in feet.sides()], dim=1)
+    return torch.stack([character.pose_vertex_subset(v, grot, gpos)[..., 1].amin(-1) for v in feet.sides()], dim=1)
 
 
 def lowest_vertex_heights(character: Character, motion: Motion, frame_chunk: int = 64) -> Tensor:
@@ -200,5 +187,4 @@ __all__ = [
     "lowest_foot_heights",
     "lowest_vertex_heights",
     "planted_feet",
-    "pose_subset",
 ]

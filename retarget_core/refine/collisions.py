@@ -27,9 +27,13 @@ Method (an optimisation resolver on the whole clip at once; paper 2's learned pe
    not pushed out (reported apart by the judge; turning the neck and spine out of it moved the head).
    Adam steps, then a finishing pass that adds every vertex still found penetrating and the arm-torso pairs found
    at the pose reached.
-4. Never worse: the result is checked per frame with all vertices (SDFs and the posed torso mesh); on frames
-   whose penetration or contact got worse the residual is blended smoothly back to zero (the input) around
-   them.
+4. Never worse: the result is checked per frame with all vertices (SDFs and the posed torso mesh). Where a
+   frame got worse, first (up to ``repair_rounds`` times) the vertices that went deeper, which the optimiser
+   could not see, join the points (their candidate segments chosen at the pose reached) with the torso-mesh
+   pairs found there, and the finishing steps run again on the knots under the worse frames (the frames those
+   knots reach are checked again, the others keep their check); then, on frames still worse, the residual is blended
+   smoothly back to zero (the input) around them (weights eroded and smoothed over a frame, so no kink where
+   two ramps meet).
 """
 
 from __future__ import annotations
@@ -75,7 +79,7 @@ from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms, mesh_energ
 from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.judged_contacts import judged_source_instances, merged_instances
 from retarget_core.refine.point_poser import PointPoser, rotvec_to_matrix
-from retarget_core.refine.temporal import bspline_basis, fallback_weights
+from retarget_core.refine.temporal import bspline_basis, smooth_fallback_weights
 
 # Joints the resolver may turn, with their stiffness (the identity term's weight multiplier): the shoulders and
 # upper spine move the whole arm or trunk and look wrong sooner, so they are stiffer; the spine only gives way
@@ -133,6 +137,13 @@ class CollisionParams:
     active_margin: int = 6  # frames optimised around each marked frame
     fallback_ramp: int = 8  # frames over which a worse span blends back to the input
     fallback_rounds: int = 4
+    repair_rounds: int = 2  # before falling back, vertices that went deeper (unseen by the optimiser) join the
+    # points and the finishing steps run again on the knots under the worse frames (held-out split, default chain:
+    # frames > 1 cm 28.2 -> 27.0 %, pen %v 0.177 -> 0.161, all targets met 31 -> 35 % of the cases; the collision
+    # stage about 1.5 x slower; a third round gave false contacts 0.029 on heavy 002_08, stage alone, measured)
+    fallback_smooth: int = 1  # frames of erosion and smoothing of the fallback weights: no kink where two ramps
+    # meet (tall 002_01, stage alone with repair rounds: jerk ratio 1.145 -> 1.058); 3 frames widened the
+    # fallback and left more frames deeper than 1 cm (measured on 8 held-out cases)
     fallback_factor: float = 0.5  # a worse frame's residual is halved per round ...
     fallback_floor: float = 0.2  # ... and dropped once below this fraction
     finish_lr_fraction: float = 0.3  # the finishing pass starts from a converged pose: smaller steps
@@ -336,13 +347,15 @@ def _active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, p
 def _build_terms(ctx: RefineContext, prob: _Problem, points: Tensor, contacts: ContactInstances, exempt: Tensor,
                  params: CollisionParams, scale: float, slack: float | Tensor, allowed: Tensor,
                  hand_points: Tensor | None = None, mesh: MeshPairs | None = None,
-                 ground: _Ground | None = None) -> _Terms:  # fmt: skip
+                 ground: _Ground | None = None, select_local: Tensor | None = None) -> _Terms:  # fmt: skip
     """Poser, candidate triples (segment pairs of ``allowed (S, S)`` within ``slack`` (m, or per point) on the
-    input pose) and contact targets of a point set."""
+    input pose, or on ``select_local (Fa, J, 3, 3)`` when given: a pose the optimiser reached) and contact
+    targets of a point set."""
     poser = PointPoser(ctx.target, points, ctx.parts.joints)
     with torch.no_grad():
         posed, seg_mats, _ = poser(prob.local_in, prob.trans)
-    triples = candidate_triples(ctx.sdf, points, posed, seg_mats, prob.frames, exempt, allowed,
+        sel_posed, sel_mats = (posed, seg_mats) if select_local is None else poser(select_local, prob.trans)[:2]
+    triples = candidate_triples(ctx.sdf, points, sel_posed, sel_mats, prob.frames, exempt, allowed,
                                 slack, params.clearance_m / scale, params.contact_tolerance_m / scale,
                                 contact_weight=params.contact_penetration_weight, hold=_hold_table(params))  # fmt: skip
     targets = _contact_targets(ctx, contacts, prob.frames, points, hand_points)
@@ -478,9 +491,11 @@ def _energy(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, pa
 
 
 def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, steps: int, lr: float,
-              params: CollisionParams, scale: float, within_m: float | None = None) -> dict[str, float]:  # fmt: skip
-    """Adam on ``knots`` in place (cosine-decayed step size); the last energy terms.
-    Every ``recull_every`` steps only the triples within ``within_m`` (default ``recull_within_m``) are kept."""
+              params: CollisionParams, scale: float, within_m: float | None = None,
+              free: Tensor | None = None) -> dict[str, float]:  # fmt: skip
+    """Adam on ``knots`` in place (cosine-decayed step size; only the knots ``free (N,)`` bool when given); the
+    last energy terms. Every ``recull_every`` steps only the triples within ``within_m`` (default
+    ``recull_within_m``) are kept."""
     within = (params.recull_within_m if within_m is None else within_m) / scale
     knots.requires_grad_(True)
     opt = torch.optim.Adam([knots], lr=lr)
@@ -501,6 +516,8 @@ def _optimise(ctx: RefineContext, prob: _Problem, terms: _Terms, knots: Tensor, 
         total, last = _energy(ctx, prob, terms, knots, params, scale)
         opt.zero_grad()
         total.backward()
+        if free is not None and knots.grad is not None:
+            knots.grad[~free] = 0.0  # Adam's moments stay zero there: those knots do not move
         opt.step()
     knots.requires_grad_(False)
     return {k: float(v.detach()) for k, v in last.items()}
@@ -560,8 +577,10 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
         c = ctx.constraints
         contact_pts = torch.cat([c.i, c.j]).unique() if c.count else torch.zeros(0, dtype=torch.long)
-        if contacts.count:  # hands in contact get denser sentinels: the contact term needs their nearest point
-            hands = contacts.hand.unique().tolist()
+        # Hands get denser sentinels: the contact term needs their nearest point, and the end-effector pull can
+        # drive a hand the 8 cm sentinels barely see into a thigh (5-6 cm deep on skinny 005_18, measured).
+        hands = [s for n in ("LeftHand", "RightHand") if (s := ctx.parts.find(n)) is not None]
+        if hands:
             contact_pts = torch.cat([contact_pts, sentinel_vertices(sdf, ch.vertices.float(), params.hand_cell_m / scale, hands)])
         mesh_pts = torch.cat([mesh_in.vertex, mesh_in.tri.flatten()]) if mesh_in is not None else contact_pts[:0]
         ground_pts = ground.vertex if ground is not None else contact_pts[:0]
@@ -589,11 +608,11 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
             points = torch.unique(torch.cat([points, mesh_in.vertex, mesh_in.tri.flatten()]))
         deep = before.depth[active] > 0
         extra = torch.nonzero(deep.any(0)).flatten()
+        hand_points = points
         if params.finish_iterations and len(extra):
             t = time.process_time()
             is_sentinel = torch.zeros(ch.num_vertices, dtype=torch.bool)
             is_sentinel[points] = True
-            hand_points = points
             points = torch.unique(torch.cat([points, extra]))
             slack = torch.where(is_sentinel[points], params.candidate_slack_m / scale, params.finish_slack_m / scale)
             terms_fin = _build_terms(ctx, prob, points, contacts, exempt, params, scale, slack, allowed, hand_points,
@@ -613,21 +632,62 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         cap = torch.ones(f_n)
         check_set = torch.nonzero(resid_all.abs().amax(dim=(1, 2)) > params.changed_rad).flatten()
         final = before
-        for _ in range(params.fallback_rounds):
+        repairs = 0
+        for _ in range(params.fallback_rounds + params.repair_rounds):
             if len(check_set) == 0:
                 break
             cand = _apply_residual(rot_in, joints, resid_all * weight[:, None, None])
             after = check_frames(ch, sdf, cand, trans, check_set, contacts, tol, allowed=allowed)
-            _with_mesh(ch, body, after, cand, trans, params.mesh_near_m / scale)
-            final = _merge(final, after)
+            mesh_after = _with_mesh(ch, body, after, cand, trans, params.mesh_near_m / scale)
             worse = worse_frames(before, after, contacts, params, scale)
             if not bool(worse.any()):
+                final = _merge(final, after)
                 check_set = check_set[:0]
                 break
+            extra_points = _deepened_points(before, after, worse, points, tol)
+            mesh_new = _mesh_inside(mesh_after, check_set[worse], tol)
+            if repairs < params.repair_rounds and (len(extra_points) or (mesh_new is not None and mesh_new.count)):
+                # Repair before falling back: the vertices that went deeper (in the SDFs or in the posed torso)
+                # were not among the optimised points or pairs; they join, and the finishing steps run again on
+                # the knots under the worse frames only (the frames they reach are optimised and checked again;
+                # every other frame keeps its residual and its check).
+                t_r = time.process_time()
+                repairs += 1
+                ok_contact = after.contact.clone()
+                ok_contact[torch.isin(contacts.frame, check_set[worse])] = float("nan")
+                final = _merge(final, FrameCheck(check_set[~worse], after.volume[~worse], after.max_depth[~worse],
+                                                 after.count[~worse], after.depth[~worse], ok_contact))  # fmt: skip
+                free = (basis_all[check_set[worse]] > 0).any(0)  # (N,) knots under the worse frames
+                reach = (basis_all[prob.frames][:, free] > 0).any(1)  # optimised frames those knots move
+                prob_r = prob.subset(torch.nonzero(reach).flatten())
+                points = torch.unique(torch.cat([points, extra_points]))
+                if mesh_after is not None and mesh_in is not None:
+                    mesh_in = mesh_in.union(mesh_after, ch.num_vertices)
+                    points = torch.unique(torch.cat([points, mesh_in.vertex, mesh_in.tri.flatten()]))
+                with torch.no_grad():  # their candidate segments are chosen at the pose reached, where they went in
+                    reached = prob_r.local(knots)
+                terms_rep = _build_terms(ctx, prob_r, points, contacts, exempt, params, scale,
+                                         params.candidate_slack_m / scale, allowed, hand_points, mesh_in, ground,
+                                         select_local=reached)  # fmt: skip
+                terms = _optimise(ctx, prob_r, terms_rep, knots, params.finish_iterations,
+                                  params.lr * params.finish_lr_fraction, params, scale,
+                                  within_m=params.finish_within_m, free=free)  # fmt: skip
+                iterations += params.finish_iterations
+                resid_old = resid_all
+                resid_all = (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
+                moved = (resid_all - resid_old).abs().amax(dim=(1, 2)) > params.changed_rad
+                moved[check_set[worse]] = True
+                nonzero = resid_all.abs().amax(dim=(1, 2)) > params.changed_rad
+                back = torch.nonzero(moved & ~nonzero).flatten()  # the input's again
+                final.volume[back], final.max_depth[back], final.count[back] = before.volume[back], before.max_depth[back], before.count[back]
+                check_set = torch.nonzero(moved & nonzero).flatten()
+                timings["repair_loop"] = timings.get("repair_loop", 0.0) + time.process_time() - t_r
+                continue
+            final = _merge(final, after)
             # Halve the residual where it made things worse (to zero after a few rounds), ramped around.
             bad = check_set[worse]
             cap[bad] = torch.where(weight[bad] * params.fallback_factor < params.fallback_floor, 0.0, weight[bad] * params.fallback_factor)
-            new_w = torch.minimum(weight, fallback_weights(cap, _at_fps(params.fallback_ramp, motion.fps)))
+            new_w = torch.minimum(weight, smooth_fallback_weights(cap, _at_fps(params.fallback_ramp, motion.fps), params.fallback_smooth))
             check_set = torch.nonzero(new_w < weight - 1e-6).flatten()
             weight = new_w
             back = check_set[weight[check_set] == 0]  # frames blended fully back are the input's again
@@ -643,7 +703,8 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         keep = resid_all.abs().amax(dim=(1, 2)) * weight <= params.changed_rad
         out_rot[keep] = rot_in[keep]
         timings["check_after"] = time.process_time() - t
-        report["fallback_frames"] = int((weight < 1).sum())
+        report["fallback_frames"] = int((weight < 1 - 1e-6).sum())
+        report["repair_rounds"] = repairs
         changed = ~keep
     else:
         final = before
@@ -662,6 +723,26 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
     ctx.report_progress(1.0)
     result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)
     return StageOutcome(result, report)
+
+
+def _deepened_points(before: FrameCheck, after: FrameCheck, worse: Tensor, points: Tensor, tol: float) -> Tensor:
+    """Vertices (not yet in ``points``) deeper than ``tol`` and deeper than in ``before`` on the ``worse (n,)``
+    frames of ``after``."""
+    frames = after.frames[worse]
+    deeper = (after.depth[worse] > tol) & (after.depth[worse] > before.depth[frames] + tol)
+    grown = deeper.any(0)
+    grown[points] = False
+    return torch.nonzero(grown).flatten()
+
+
+def _mesh_inside(mesh: MeshPairs | None, frames: Tensor, tol: float) -> MeshPairs | None:
+    """The pairs of ``mesh`` (clip frames) deeper than ``tol`` on clip ``frames``."""
+    if mesh is None:
+        return None
+    on = torch.zeros(int(max(int(mesh.frame.max()) if mesh.count else 0, int(frames.max()) if len(frames) else 0)) + 1,
+                     dtype=torch.bool)  # fmt: skip
+    on[frames] = True
+    return mesh.select(on[mesh.frame] & (mesh.depth > tol))
 
 
 def _with_mesh(ch: Any, body: Any, check: FrameCheck, rotations: Tensor, translations: Tensor,

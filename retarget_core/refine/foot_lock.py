@@ -43,7 +43,6 @@ from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.character import Character
 from retarget_core.energy.sdf import effective_depth, sample_pairs, segment_matrices
-from retarget_core.kinematics import skinning_matrices
 from retarget_core.metrics.feet_acceptance import foot_vertices_of
 from retarget_core.motion import Motion
 from retarget_core.refine.context import RefineContext, StageOutcome
@@ -483,22 +482,6 @@ def slide_figures(gpos: Tensor, fps: float, legs: list[Leg], planted: list[Tenso
     return {"mean": round(float(allv.mean()) * to_cm, 4), "max": round(float(allv.max()) * to_cm, 4)}
 
 
-def _pose_subset(character: Character, index: Tensor, grot: Tensor, gpos: Tensor, chunk: int = 64) -> Tensor:
-    """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` (linear blend skinning on the joints that
-    skin them only), in chunks of frames."""
-    weights = character.dense_weights()[index]
-    used = torch.nonzero(weights.sum(0) > 0).flatten()
-    rest_rot, rest_pos = character.skeleton.rest_global()
-    homo = torch.cat([character.vertices[index], torch.ones(len(index), 1)], -1)  # (N, 4)
-    w = weights[:, used]
-    out = []
-    for s in range(0, grot.shape[0], chunk):
-        mats = skinning_matrices(rest_rot[used], rest_pos[used], grot[s : s + chunk, used], gpos[s : s + chunk, used])
-        blended = torch.matmul(w, mats.reshape(mats.shape[0], len(used), 12)).reshape(mats.shape[0], -1, 3, 4)
-        out.append((blended @ homo[:, :, None])[..., 0])
-    return torch.cat(out)
-
-
 def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: FootLockParams) -> dict[str, Any]:
     """Leg vertices against the other leg and the arms on ``frames`` (what moving the legs can change; arm
     vertices inside a leg are not tested: the leg vertices around them are inside the arm too): the deepest
@@ -518,7 +501,7 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
     with torch.no_grad():
         # Only leg vertices are tested: pose those alone.
         index = torch.nonzero(legs[parts.vertex_part]).flatten()
-        posed = _pose_subset(ctx.target, index, grot, gpos)
+        posed = ctx.target.pose_vertex_subset(index, grot, gpos)
         mats = segment_matrices(ctx.target, parts, grot, gpos)
         samples = sample_pairs(ctx.sdf, posed, mats, allowed, vertices=index, inside_only=True)
         depth = effective_depth(ctx.sdf, samples)

@@ -104,3 +104,19 @@ def test_skinning_is_differentiable(shared_data: Path) -> None:
     verts = character.pose_vertices(grot, gpos)
     verts[..., 1].mean().backward()
     assert angles.grad is not None and torch.isfinite(angles.grad).all() and angles.grad.abs().sum() > 0
+
+
+def test_posing_a_vertex_subset_matches_posing_the_whole_mesh() -> None:
+    """``Character.pose_vertex_subset`` (foot lock, the feet measures, placement) gives the whole mesh's posed
+    positions of its vertices, across chunk boundaries."""
+    sample = Path(__file__).resolve().parents[2] / "retarget_core" / "data" / "samples" / "characters" / "mh_female_skinny.glb"
+    ch = read_gltf(sample).character
+    assert ch is not None
+    g = torch.Generator().manual_seed(0)
+    f_n, j_n = 5, ch.skeleton.num_joints
+    local = rot.normalize(torch.tensor([0.0, 0.0, 0.0, 1.0]) + 0.2 * torch.randn(f_n, j_n, 4, generator=g))
+    trans = ch.skeleton.rest_translations.expand(f_n, -1, -1).clone()
+    grot, gpos = kinematics.forward_kinematics(ch.skeleton.parents, local, trans)
+    index = torch.tensor([0, 17, ch.num_vertices // 2, ch.num_vertices - 1])
+    whole = ch.pose_vertices(grot, gpos)[:, index]
+    assert torch.allclose(ch.pose_vertex_subset(index, grot, gpos, chunk=2), whole, atol=1e-5)

@@ -1,0 +1,71 @@
+"""What each refinement stage does to the judge's figures: one clip x body through the default chain, the
+acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them) printed after the copy and after every
+stage that ran, so a regression can be pinned on the stage that made it.
+
+    PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/chain_diag.py \\
+        ../shared/data/motions/cmu/002_06.bvh ~/.cache/retarget/heldout/heldout_tall-cc6a29d268ed.glb
+
+The clip is sent as a GLB on the average body (as the held-out evaluation does); ``--frames`` (default 100)
+caps its length. Optional ``--json`` writes the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from retarget_core.evaluation import method_options, source_as_glb
+from retarget_core.jobs import JobInputs
+from retarget_core.metrics.acceptance import figures_from_measures, load_judged_file, measure_acceptance
+from retarget_core.motion import Motion
+from retarget_core.pipeline import prepare, refine_context
+from retarget_core.refine import refinement_stages
+from retarget_core.resample import resample
+
+FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts", "foot_accuracy",
+           "end_effector_error_cm", "jerk_ratio")  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("clip", type=Path)
+    ap.add_argument("body")
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--source-body", default="builtin:male_average")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    glb = source_as_glb(a.clip, a.source_body, Path(tempfile.mkdtemp(prefix="chain-diag-")) / "src.glb", a.frames, None)
+    prepared = prepare(JobInputs(glb, a.body, None, method_options("full", None)), max_frames=a.frames)
+    ctx = refine_context(prepared)
+    target = prepared.target
+    s_char, s_map, s_mot = load_judged_file(glb)
+    source = measure_acceptance(s_char, s_map, resample(s_mot, prepared.source_view.fps).slice(0, prepared.source_view.num_frames))
+    rows: list[dict[str, object]] = []
+
+    def report(stage: str, motion: Motion, seconds: float) -> None:
+        f = figures_from_measures(measure_acceptance(target.character, target.mapping, motion), source)
+        row = {"stage": stage, "seconds": round(seconds, 2), **{k: round(float(getattr(f, k)), 4) for k in FIGURES}}
+        rows.append(row)
+        print(f"{stage:>12}: " + "  ".join(f"{k} {row[k]}" for k in FIGURES) + f"  ({seconds:.1f} s)", flush=True)
+
+    print(f"{a.clip.stem} x {Path(a.body).stem}, {prepared.before.num_frames} frames")
+    report("copy", prepared.before, 0.0)
+    motion = prepared.before
+    for info, stage in refinement_stages():
+        if stage is None or not prepared.inputs.options.stages.enabled(info.name):
+            continue
+        t = time.perf_counter()
+        motion = stage(ctx, motion).motion
+        report(info.name, motion, time.perf_counter() - t)
+    if a.json:
+        a.json.write_text(json.dumps({"clip": a.clip.stem, "body": a.body, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

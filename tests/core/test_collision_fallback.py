@@ -1,0 +1,60 @@
+"""The collision stage's never-worse machinery on small tensors: the smoothed fallback weights stay under their
+caps without kinks, and the repair step finds the vertices that went deeper than on the input."""
+
+from __future__ import annotations
+
+import torch
+
+from retarget_core.refine.collision_check import FrameCheck
+from retarget_core.refine.collision_mesh import MeshPairs
+from retarget_core.refine.collisions import _deepened_points, _mesh_inside
+from retarget_core.refine.temporal import fallback_weights, smooth_fallback_weights
+
+
+def _caps() -> torch.Tensor:
+    cap = torch.ones(60)
+    cap[15], cap[18], cap[40] = 0.5, 0.0, 0.25  # two ramps that meet (a kink in their minimum) and one alone
+    return cap
+
+
+def test_smoothed_fallback_weights_stay_under_the_caps_and_the_plain_weights() -> None:
+    cap = _caps()
+    plain, smooth = fallback_weights(cap, 8), smooth_fallback_weights(cap, 8, 3)
+    assert bool((smooth <= plain + 1e-6).all())
+    assert bool((smooth[cap < 1] <= cap[cap < 1] + 1e-6).all())
+    assert float(smooth[0]) > 0.9 and float(smooth[-1]) > 0.9  # far from the caps the residual comes through
+
+
+def test_smoothed_fallback_weights_have_a_smaller_third_difference() -> None:
+    cap = _caps()
+    plain, smooth = fallback_weights(cap, 8), smooth_fallback_weights(cap, 8, 3)
+    jerk = lambda w: float(torch.diff(w, n=3).abs().max())  # noqa: E731
+    assert jerk(smooth) < 0.5 * jerk(plain)
+
+
+def test_no_caps_no_smoothing_needed() -> None:
+    assert torch.equal(smooth_fallback_weights(torch.ones(20), 8, 3), torch.ones(20))
+    cap = _caps()
+    assert torch.equal(smooth_fallback_weights(cap, 8, 0), fallback_weights(cap, 8))
+
+
+def _check(frames: list[int], depth: torch.Tensor) -> FrameCheck:
+    return FrameCheck(torch.tensor(frames), depth.sum(1), depth.amax(1), (depth > 0).sum(1).float(), depth, torch.zeros(0))
+
+
+def test_deepened_points_are_the_new_deeper_vertices_of_the_worse_frames() -> None:
+    before = _check([0, 1, 2], torch.tensor([[0.0, 0.02, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]))
+    # frame 1 (worse): vertex 0 went in 1 cm, vertex 2 by less than the tolerance; frame 2 (not worse): vertex 3
+    after = _check([1, 2], torch.tensor([[0.01, 0.0, 0.001, 0.0], [0.0, 0.0, 0.0, 0.03]]))
+    worse = torch.tensor([True, False])
+    got = _deepened_points(before, after, worse, points=torch.tensor([1]), tol=0.003)
+    assert got.tolist() == [0]
+    assert _deepened_points(before, after, worse, points=torch.tensor([0]), tol=0.003).tolist() == []
+
+
+def test_mesh_inside_keeps_the_deep_pairs_of_the_given_frames() -> None:
+    mesh = MeshPairs(torch.tensor([3, 3, 5, 7]), torch.tensor([10, 11, 12, 13]), torch.zeros(4, 3, dtype=torch.long),
+                     torch.ones(4), torch.tensor([0.01, -0.002, 0.02, 0.02]))  # fmt: skip
+    kept = _mesh_inside(mesh, torch.tensor([3, 5]), tol=0.003)
+    assert kept is not None and kept.vertex.tolist() == [10, 12]
+    assert _mesh_inside(None, torch.tensor([3]), 0.003) is None
