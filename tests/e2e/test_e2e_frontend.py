@@ -470,8 +470,9 @@ def test_charts_summary_and_markers_with_series(new_page: Any, form_job: FormJob
     seek(page, 11)
     assert page.get_attribute('.view[data-view="after"]', "data-penetrating") == "0"
     red_off = {v: red_fraction(page, v) for v in ("before", "after")}
-    for v in ("before", "after"):
-        assert red_on[v] > 0.002 and red_off[v] < red_on[v] / 5, (v, red_on, red_off)
+    for v in ("before", "after"):  # the listed vertices (indices 0..N) cover a pose-dependent area of the
+        # real job's character: 0.19-1 % of the pixels on frame 10; none on a frame that lists none
+        assert red_on[v] > 0.001 and red_off[v] < red_on[v] / 5, (v, red_on, red_off)
     # Each view paints its own list (before lists more vertices than after), even when the two files are equal.
     assert red_on["before"] > 1.3 * red_on["after"], red_on
     seek(page, CONTACT_FIRST + 2)
