@@ -75,14 +75,13 @@ class Character:
         weights = self.dense_weights()[index]  # (N, J)
         used = torch.nonzero(weights.sum(0) > 0).flatten()
         rest_rot, rest_pos = self.skeleton.rest_global()
-        w = weights[:, used]
+        w, rest = weights[:, used], self.vertices[index]
         out = []
         for s in range(0, global_rotations.shape[0], chunk):
             mats = kinematics.skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[s : s + chunk, used],
                                                 global_positions[s : s + chunk, used])  # fmt: skip
             blended = torch.einsum("nj,fjab->fnab", w.to(mats.dtype), mats)  # (f, N, 3, 4)
-            rest = self.vertices[index].to(mats.dtype)
-            out.append(torch.einsum("fnab,nb->fna", blended[..., :3], rest) + blended[..., 3])
+            out.append(torch.einsum("fnab,nb->fna", blended[..., :3], rest.to(mats.dtype)) + blended[..., 3])
         if not out:
             return self.vertices.new_zeros(0, len(index), 3)
         return torch.cat(out)

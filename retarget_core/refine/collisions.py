@@ -577,8 +577,8 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         sentinels = sentinel_vertices(sdf, ch.vertices.float(), params.sentinel_cell_m / scale)
         c = ctx.constraints
         contact_pts = torch.cat([c.i, c.j]).unique() if c.count else torch.zeros(0, dtype=torch.long)
-        # Hands get denser sentinels: the contact term needs their nearest point, and the end-effector pull can
-        # drive a hand the 8 cm sentinels barely see into a thigh (5-6 cm deep on skinny 005_18, measured).
+        # Both hands get denser sentinels, in contact or not: the contact term needs their nearest point, and the
+        # end-effector term moves every hand, which the 8 cm sentinels cover with one or two points.
         hands = [s for n in ("LeftHand", "RightHand") if (s := ctx.parts.find(n)) is not None]
         if hands:
             contact_pts = torch.cat([contact_pts, sentinel_vertices(sdf, ch.vertices.float(), params.hand_cell_m / scale, hands)])
@@ -589,6 +589,11 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         terms_in = _build_terms(ctx, coarse, points, contacts, exempt, params, scale, params.candidate_slack_m / scale,
                                 allowed, mesh=mesh_in, ground=ground)  # fmt: skip
         knots = torch.zeros(basis_all.shape[1], len(names), 3)
+
+        def clip_residual() -> Tensor:
+            """``(F, Jo, 3)`` rotation vectors of the current knots on every clip frame."""
+            return (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
+
         report["sentinels"] = int(len(points))
         report["sentinel_triples"] = terms_in.triples.count
         timings["setup"] = time.process_time() - t
@@ -601,7 +606,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         # the posed torso again at the pose reached (an arm moved out of a leg may have entered the armpit).
         if body is not None and mesh_in is not None:
             with torch.no_grad():
-                now = _apply_residual(rot_in, prob.joints.tolist(), (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3))
+                now = _apply_residual(rot_in, prob.joints.tolist(), clip_residual())
             mesh_now = mesh_pairs_of_motion(ch, body, now, trans, active, params.mesh_near_m / scale)
             mesh_now.frame = active[mesh_now.frame]
             mesh_in = mesh_in.union(mesh_now, ch.num_vertices)
@@ -626,7 +631,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         ctx.report_progress(0.8)
         # Never worse: blend back to the input around frames that got worse (all vertices checked).
         t = time.process_time()
-        resid_all = (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
+        resid_all = clip_residual()
         joints = prob.joints.tolist()
         weight = torch.ones(f_n)
         cap = torch.ones(f_n)
@@ -674,7 +679,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
                                   within_m=params.finish_within_m, free=free)  # fmt: skip
                 iterations += params.finish_iterations
                 resid_old = resid_all
-                resid_all = (basis_all @ knots.reshape(knots.shape[0], -1)).reshape(f_n, len(names), 3)
+                resid_all = clip_residual()
                 moved = (resid_all - resid_old).abs().amax(dim=(1, 2)) > params.changed_rad
                 moved[check_set[worse]] = True
                 nonzero = resid_all.abs().amax(dim=(1, 2)) > params.changed_rad
@@ -739,10 +744,7 @@ def _mesh_inside(mesh: MeshPairs | None, frames: Tensor, tol: float) -> MeshPair
     """The pairs of ``mesh`` (clip frames) deeper than ``tol`` on clip ``frames``."""
     if mesh is None:
         return None
-    on = torch.zeros(int(max(int(mesh.frame.max()) if mesh.count else 0, int(frames.max()) if len(frames) else 0)) + 1,
-                     dtype=torch.bool)  # fmt: skip
-    on[frames] = True
-    return mesh.select(on[mesh.frame] & (mesh.depth > tol))
+    return mesh.select(torch.isin(mesh.frame, frames) & (mesh.depth > tol))
 
 
 def _with_mesh(ch: Any, body: Any, check: FrameCheck, rotations: Tensor, translations: Tensor,
