@@ -7,12 +7,18 @@ world rotation change since its rest pose, after aligning the two rest poses bon
 
 where ``d_s``/``d_t`` are the rest directions of the bone (joint to its canonical child) of source and target.
 ``A_c`` is the shortest arc between them (a T-pose source drives an A-pose target correctly); the hips and
-spine use full frames (bone direction plus the body's left axis) so their twist is aligned too. Joints of the
+spine use full frames (bone direction plus the body's left axis) so their twist is aligned too. The feet are
+aligned on the floor instead: both rest poses stand flat on it, so ``A_c`` turns only about the vertical, taking
+the horizontal part of ``d_t`` to that of ``d_s``. A flat source foot then stays flat on the target whatever the
+slope of each rig's ankle-to-toe bone (the shortest arc would tilt a foot whose ankle sits higher over a shorter
+foot toes-up by the difference of the slopes: 4 degrees, a toe joint 1 cm up, from an average to a heavy body). Joints of the
 target that are not canonical keep their rest local rotation. This is what a production rotation retargeter
 (Unreal IK Retargeter's FK chains, Mixamo) gives without IK: the "before" of every comparison.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -46,6 +52,10 @@ BONE_CHILDREN: dict[str, tuple[str, ...]] = {
     "RightLeg": ("RightFoot",),
     "RightFoot": ("RightToeBase",),
 }
+# Canonical joints aligned on the floor (about the vertical only; see module doc), when both rest bones are
+# closer to horizontal than FLOOR_ALIGNED_MAX_SLOPE_DEG (a rig whose rest foot points down falls back to the arc).
+FLOOR_ALIGNED = ("LeftFoot", "RightFoot")
+FLOOR_ALIGNED_MAX_SLOPE_DEG = 60.0
 CONTACT_FRAME_CLEARANCE_M = 0.03
 MIN_BONE_LENGTH_M = 1e-3
 
@@ -61,10 +71,25 @@ def _bone_direction(name: str, positions: Tensor, mapping: JointMapping) -> Tens
     return None
 
 
+def _floor_alignment(dt: Tensor, ds: Tensor) -> Tensor | None:
+    """The rotation ``(4,)`` about the vertical taking the horizontal part of ``dt (3,)`` to that of ``ds (3,)``;
+    None when either bone is steeper than :data:`FLOOR_ALIGNED_MAX_SLOPE_DEG`."""
+    min_cos = math.cos(math.radians(FLOOR_ALIGNED_MAX_SLOPE_DEG))
+    flat = []
+    for d in (dt, ds):
+        h = d.clone()
+        h[1] = 0.0
+        if float(h.norm()) < min_cos * float(d.norm()):
+            return None
+        flat.append(h)
+    return rot.between(flat[0], flat[1])
+
+
 def rest_alignment(
     source: Skeleton, source_map: JointMapping, target: Skeleton, target_map: JointMapping
 ) -> dict[str, Tensor]:
-    """Per canonical joint mapped on both sides, the world rotation ``A (4,)`` with ``A * d_target = d_source``.
+    """Per canonical joint mapped on both sides, the world rotation ``A (4,)`` with ``A * d_target = d_source``
+    (the feet: their horizontal parts; see module doc).
 
     Joints without a bone direction on both sides (hands, head, toes) inherit their canonical parent's."""
     _, spos = source.rest_global()
@@ -80,6 +105,8 @@ def rest_alignment(
                 fs = rot.from_frame(ds, s_left, primary_axis=1, secondary_axis=0)
                 ft = rot.from_frame(dt, t_left, primary_axis=1, secondary_axis=0)
                 align[name] = rot.normalize(rot.mul(fs, rot.inv(ft)))
+            elif name in FLOOR_ALIGNED and (on_floor := _floor_alignment(dt, ds)) is not None:
+                align[name] = on_floor
             else:
                 align[name] = rot.between(dt, ds)
         else:

@@ -182,6 +182,7 @@ class CollisionParams:
     # targets ended 30-60 % above it (hands and head; bulky 002_06, 007_06, weight 1, measured)
     contact_ee_weight: float = 0.05  # a hand's end-effector weight on frames it touches a part: the contact places
     # it (at 0.5 a hand sunk 3 cm into a belly came out by lifting the palm 1.8 cm off it, measured)
+    planted_foot_ee_weight: float = 0.5  # a foot's end-effector weight on frames the source has it planted
     trace: bool = False  # the report gets per-frame "trace": optimised frames and never-worse weights (diagnostics)
 
 
@@ -404,8 +405,14 @@ def _ee_targets(ctx: RefineContext, gpos_in: Tensor, frames: Tensor, names: list
 def _ee_weights(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, names: list[str],
                 params: CollisionParams) -> Tensor:  # fmt: skip
     """``(Fa, E)`` end-effector weights at clip ``frames (Fa,)``: ``params.end_effectors``, and
-    ``contact_ee_weight`` for a hand on the frames it is in contact."""
+    ``contact_ee_weight`` for a hand on the frames it is in contact, ``planted_foot_ee_weight`` for a foot on
+    the frames the source has it planted (``ctx.planted``)."""
     w = torch.tensor([params.end_effectors[n] for n in names]).expand(len(frames), -1).clone()
+    if ctx.planted is not None:
+        for e, n in enumerate(names):
+            if n in ("LeftFoot", "RightFoot"):
+                planted = ctx.planted[frames, 0 if n == "LeftFoot" else 1].bool()
+                w[planted, e] = params.planted_foot_ee_weight
     if contacts.count == 0:
         return w
     pos_of = torch.full((ctx.num_frames,), -1, dtype=torch.long)

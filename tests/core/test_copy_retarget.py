@@ -16,8 +16,9 @@ from retarget_core.motion import Motion
 LIMB_BONES = [
     ("LeftArm", "LeftForeArm"), ("LeftForeArm", "LeftHand"), ("RightArm", "RightForeArm"), ("RightForeArm", "RightHand"),
     ("LeftUpLeg", "LeftLeg"), ("LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg"), ("RightLeg", "RightFoot"),
-    ("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"), ("LeftShoulder", "LeftArm"), ("RightShoulder", "RightArm"),
+    ("LeftShoulder", "LeftArm"), ("RightShoulder", "RightArm"),
 ]  # fmt: skip
+FOOT_BONES = [("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase")]
 END_EFFECTORS = ["LeftHand", "RightHand", "LeftFoot", "RightFoot", "Head"]
 
 
@@ -56,6 +57,36 @@ def test_limb_directions_follow_the_source(request: pytest.FixtureRequest, clip:
         if a in src.mapping.joints and a in bulky.mapping.joints:
             err = _angle_deg(_directions(sp, src.mapping, a, b), _directions(tp, bulky.mapping, a, b))
             assert err.max() < 1.0, f"{a}->{b} deviates by up to {err.max():.2f} degrees"
+
+
+def _slope_deg(d: torch.Tensor) -> torch.Tensor:
+    """Angle ``(...)`` of directions ``d (..., 3)`` below the horizontal."""
+    return torch.rad2deg(torch.atan2(-d[..., 1], d[..., [0, 2]].norm(dim=-1)))
+
+
+@pytest.mark.parametrize("clip", ["cc_walk", "mb_clip"])
+def test_feet_turn_as_the_source_feet_do(request: pytest.FixtureRequest, clip: str, bulky: LoadedCharacter) -> None:
+    # Feet are aligned on the floor: the target's foot keeps its own rest slope and turns with the source's, so
+    # the angle between the two posed foot bones is the (constant) angle between the rest bones once turned
+    # to the same heading; a flat source foot gives a flat target foot.
+    src: LoadedMotion = request.getfixturevalue(clip)
+    out = copy_retarget(src.motion, src.mapping, bulky.character.skeleton, bulky.mapping)
+    _, sp = src.motion.global_transforms()
+    _, tp = out.global_transforms()
+    _, s_rest = src.motion.skeleton.rest_global()
+    _, t_rest = bulky.character.skeleton.rest_global()
+    for a, b in FOOT_BONES:
+        rest_gap = (_slope_deg(_directions(s_rest, src.mapping, a, b)) - _slope_deg(_directions(t_rest, bulky.mapping, a, b))).abs()
+        err = _angle_deg(_directions(sp, src.mapping, a, b), _directions(tp, bulky.mapping, a, b))
+        assert float((err - rest_gap).abs().max()) < 0.5, (a, float(rest_gap), float(err.min()), float(err.max()))
+    # The rest poses themselves: a source standing still in its rest pose leaves the target's feet at rest.
+    still = Motion(src.motion.skeleton, src.motion.fps, src.motion.skeleton.rest_rotations[None].repeat(2, 1, 1),
+                   src.motion.skeleton.rest_translations[None].repeat(2, 1, 1), "rest")  # fmt: skip
+    posed = copy_retarget(still, src.mapping, bulky.character.skeleton, bulky.mapping)
+    _, pp = posed.global_transforms()
+    for a, b in FOOT_BONES:
+        slope = _slope_deg(_directions(pp, bulky.mapping, a, b))
+        assert torch.allclose(slope, _slope_deg(_directions(t_rest, bulky.mapping, a, b)), atol=0.1), a
 
 
 def test_tpose_source_drives_apose_target_into_tpose(mb_clip: LoadedMotion, bulky: LoadedCharacter) -> None:

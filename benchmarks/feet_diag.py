@@ -1,0 +1,82 @@
+"""Why a result's feet read planted or not: per frame, for the source (a GLB on the average body, as the
+held-out evaluation sends it) and for the copy baseline ("before") on a body, the judge's inputs to the foot
+label (ACCEPTANCE.md): the toe joint's height above its rest height and the lowest foot vertex, in cm at a
+1.80 m character, and the labels themselves.
+
+    PYTHONPATH=. python benchmarks/feet_diag.py \\
+        ../shared/data/motions/cmu/002_05.bvh ~/.cache/retarget/heldout/heldout_heavy-cdfa1e99e730.glb
+
+``--frames`` (default 100) caps the clip; ``--json`` writes the series.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from retarget_core.character import Character
+from retarget_core.evaluation import method_options, source_as_glb
+from retarget_core.jobs import JobInputs
+from retarget_core.metrics.acceptance import CANONICAL_JOINTS, ClipAcceptance, load_judged_file, measure_acceptance
+from retarget_core.pipeline import prepare
+from retarget_core.resample import resample
+
+REFERENCE_HEIGHT_M = 1.80
+SIDES = ("Left", "Right")
+
+
+def rest_toe_heights(character: Character, mapping: object) -> list[float]:
+    """Rest height (m at 1.80 m) of the left and right toe joints."""
+    _, rest = character.skeleton.rest_global()
+    k = REFERENCE_HEIGHT_M / character.height
+    return [float(rest[mapping.joints[f"{s}ToeBase"], 1]) * k for s in SIDES]  # type: ignore[attr-defined]
+
+
+def series(measured: ClipAcceptance, rest_toe: list[float]) -> dict[str, list[list[float]]]:
+    """Per side: toe height above rest (cm), lowest foot vertex (cm), planted (0/1), each ``(F,)``."""
+    out: dict[str, list[list[float]]] = {"toe_above_rest_cm": [], "lowest_foot_cm": [], "planted": []}
+    for s, side in enumerate(SIDES):
+        toe = CANONICAL_JOINTS.index(f"{side}ToeBase")
+        out["toe_above_rest_cm"].append(np.round((measured.joints[:, toe, 1] - rest_toe[s]) * 100, 2).tolist())
+        out["lowest_foot_cm"].append(np.round(measured.lowest_foot[:, s] * 100, 2).tolist())
+        out["planted"].append(measured.planted[:, s].astype(int).tolist())
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("clip", type=Path)
+    ap.add_argument("body")
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--source-body", default="builtin:male_average")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        src = source_as_glb(args.clip, args.source_body, Path(tmp) / f"{args.clip.stem}.glb", args.frames, 30.0)
+        prepared = prepare(JobInputs(src, args.body, None, method_options("copy", 30.0)), max_frames=args.frames)
+        s_char, s_map, s_motion = load_judged_file(src)
+    s_motion = resample(s_motion, 30.0).slice(0, prepared.before.num_frames)
+    tgt = prepared.target
+    rows = {
+        "source": series(measure_acceptance(s_char, s_map, s_motion), rest_toe_heights(s_char, s_map)),
+        "before": series(measure_acceptance(tgt.character, tgt.mapping, prepared.before),
+                         rest_toe_heights(tgt.character, tgt.mapping)),  # fmt: skip
+    }
+    np.set_printoptions(linewidth=200, precision=1, suppress=True)
+    for s, side in enumerate(SIDES):
+        print(side)
+        for who, r in rows.items():
+            for key in ("toe_above_rest_cm", "lowest_foot_cm", "planted"):
+                print(f"  {who:6} {key:18}", np.array(r[key][s]))
+    agree = np.array(rows["source"]["planted"]) == np.array(rows["before"]["planted"])
+    print(f"foot accuracy of the copy: {agree.mean():.3f}")
+    if args.json:
+        args.json.write_text(json.dumps({"clip": args.clip.stem, "body": str(args.body), **rows}) + "\n")
+
+
+if __name__ == "__main__":
+    main()
