@@ -7,7 +7,8 @@ stage that ran, so a regression can be pinned on the stage that made it.
 
 The clip is sent as a GLB on the average body and resampled to 30 fps, as the held-out evaluation does (the
 copy's and the last stage's rows are that evaluation's figures for the case); ``--frames`` (default 100) caps
-its length. Optional ``--json`` writes the rows.
+its length. Optional ``--json`` writes the rows; ``--collisions KEY=VALUE`` (repeatable) runs the collision stage
+with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee_weight=0.5``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from retarget_core.jobs import JobInputs
 from retarget_core.metrics.acceptance import figures_from_measures, load_judged_file, measure_acceptance
 from retarget_core.motion import Motion
 from retarget_core.pipeline import prepare, refine_context
-from retarget_core.refine import refinement_stages
+from retarget_core.refine import collisions, refinement_stages
 from retarget_core.resample import resample
 
 JUDGE_FPS = 30.0  # what `retarget eval` resamples every clip to
@@ -40,7 +41,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--source-body", default="builtin:male_average")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
+    defaults = collisions.CollisionParams()
+    overrides = {k: type(getattr(defaults, k))(float(v)) for k, v in (kv.split("=", 1) for kv in a.collisions)}
+    collision_params = collisions.CollisionParams(**overrides)
     torch.set_num_threads(1)
     glb = source_as_glb(a.clip, a.source_body, Path(tempfile.mkdtemp(prefix="chain-diag-")) / "src.glb", a.frames, JUDGE_FPS)
     prepared = prepare(JobInputs(glb, a.body, None, method_options("full", JUDGE_FPS)), max_frames=a.frames)
@@ -63,10 +68,11 @@ def main() -> None:
         if stage is None or not prepared.inputs.options.stages.enabled(info.name):
             continue
         t = time.perf_counter()
-        motion = stage(ctx, motion).motion
+        run = (lambda c, m: collisions.resolve(c, m, collision_params)) if info.name == "collisions" else stage
+        motion = run(ctx, motion).motion
         report(info.name, motion, time.perf_counter() - t)
     if a.json:
-        a.json.write_text(json.dumps({"clip": a.clip.stem, "body": a.body, "rows": rows}, indent=1))
+        a.json.write_text(json.dumps({"clip": a.clip.stem, "body": a.body, "collisions": overrides, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":
