@@ -13,46 +13,34 @@ with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee
 
 from __future__ import annotations
 
-import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 
 import torch
+from heldout_case import case_parser, prepare_case
 
-from retarget_core.evaluation import method_options, source_as_glb
-from retarget_core.jobs import JobInputs
-from retarget_core.metrics.acceptance import figures_from_measures, load_judged_file, measure_acceptance
+from retarget_core.metrics.acceptance import figures_from_measures, measure_acceptance
 from retarget_core.motion import Motion
-from retarget_core.pipeline import prepare, refine_context
+from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions, refinement_stages
-from retarget_core.resample import resample
 
-JUDGE_FPS = 30.0  # what `retarget eval` resamples every clip to
 FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts", "foot_accuracy",
            "end_effector_error_cm", "jerk_ratio")  # fmt: skip
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("clip", type=Path)
-    ap.add_argument("body")
-    ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--source-body", default="builtin:male_average")
-    ap.add_argument("--json", type=Path, default=None)
+    ap = case_parser(__doc__)
     ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
     defaults = collisions.CollisionParams()
     overrides = {k: type(getattr(defaults, k))(float(v)) for k, v in (kv.split("=", 1) for kv in a.collisions)}
     collision_params = collisions.CollisionParams(**overrides)
     torch.set_num_threads(1)
-    glb = source_as_glb(a.clip, a.source_body, Path(tempfile.mkdtemp(prefix="chain-diag-")) / "src.glb", a.frames, JUDGE_FPS)
-    prepared = prepare(JobInputs(glb, a.body, None, method_options("full", JUDGE_FPS)), max_frames=a.frames)
+    case = prepare_case(a.clip, a.body, a.frames, a.source_body)
+    prepared, source = case.prepared, case.source
     ctx = refine_context(prepared)
     target = prepared.target
-    s_char, s_map, s_mot = load_judged_file(glb)
-    source = measure_acceptance(s_char, s_map, resample(s_mot, prepared.source_view.fps).slice(0, prepared.source_view.num_frames))
     rows: list[dict[str, object]] = []
 
     def report(stage: str, motion: Motion, seconds: float) -> None:

@@ -10,20 +10,17 @@ weight it kept there.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
+from heldout_case import case_parser, prepare_case
 
-from retarget_core.evaluation import method_options, source_as_glb
-from retarget_core.jobs import JobInputs
-from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measures, load_judged_file, measure_acceptance
+from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measures, measure_acceptance
 from retarget_core.metrics.acceptance_body import PARTS, acceptance_body
-from retarget_core.pipeline import prepare, refine_context
+from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions
 from retarget_core.refine.collision_check import check_frames, contact_instances, judged_allowed
 from retarget_core.resample import resample
@@ -48,17 +45,10 @@ def part_pairs(character, mapping, posed: np.ndarray) -> list[tuple[str, str, fl
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("clip")
-    ap.add_argument("body")
-    ap.add_argument("--frames", type=int, default=150)
-    ap.add_argument("--source-body", default="builtin:male_average")
-    ap.add_argument("--json", default=None)
-    a = ap.parse_args()
+    a = case_parser(None, frames=150).parse_args()
     torch.set_num_threads(1)
-    scratch = Path(tempfile.mkdtemp(prefix="coll-diag-"))
-    glb = source_as_glb(Path(a.clip), a.source_body, scratch / "src.glb", a.frames, None)
-    prepared = prepare(JobInputs(glb, a.body, None, method_options("copy", None)), max_frames=a.frames)
+    case = prepare_case(a.clip, a.body, a.frames, a.source_body, method="copy", fps=None)
+    prepared, src = case.prepared, case.source
     ctx = refine_context(prepared)
     tgt = prepared.target
     ch, sdf = tgt.character, ctx.sdf
@@ -66,8 +56,6 @@ def main() -> None:
     outcome = collisions.resolve(ctx, prepared.before, collisions.CollisionParams(trace=True))
     rep = outcome.report
     trace = rep.pop("trace")
-    s_char, s_map, s_mot = load_judged_file(glb)
-    src = measure_acceptance(s_char, s_map, resample(s_mot, prepared.source_view.fps).slice(0, prepared.source_view.num_frames))
     m_before = measure_acceptance(ch, tgt.mapping, prepared.before)
     m_after = measure_acceptance(ch, tgt.mapping, outcome.motion)
     fb, fa = figures_from_measures(m_before, src), figures_from_measures(m_after, src)
@@ -128,7 +116,7 @@ def main() -> None:
                 cnt[f"{pairs[0][0]}>{pairs[0][1]}"] += 1
         print(f"deepest pairs of frames > 1 cm {label}: {dict(cnt)}")
     if a.json:
-        Path(a.json).write_text(json.dumps({"rows": rows, "report": rep}, indent=1))
+        a.json.write_text(json.dumps({"rows": rows, "report": rep}, indent=1))
 
 
 if __name__ == "__main__":

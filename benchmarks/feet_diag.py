@@ -11,22 +11,14 @@ label (ACCEPTANCE.md): the toe joint's height above its rest height and the lowe
 
 from __future__ import annotations
 
-import argparse
 import json
-import tempfile
-from pathlib import Path
 
 import numpy as np
+from heldout_case import case_parser, prepare_case
 
 from retarget_core.character import Character
-from retarget_core.evaluation import method_options, source_as_glb
-from retarget_core.jobs import JobInputs
-from retarget_core.metrics.acceptance import CANONICAL_JOINTS, ClipAcceptance, load_judged_file, measure_acceptance
-from retarget_core.pipeline import prepare
-from retarget_core.resample import resample
-
-REFERENCE_HEIGHT_M = 1.80
-SIDES = ("Left", "Right")
+from retarget_core.metrics.acceptance import CANONICAL_JOINTS, ClipAcceptance, measure_acceptance
+from retarget_core.metrics.feet_acceptance import REFERENCE_HEIGHT_M, SIDES
 
 
 def rest_toe_heights(character: Character, mapping: object) -> list[float]:
@@ -48,21 +40,11 @@ def series(measured: ClipAcceptance, rest_toe: list[float]) -> dict[str, list[li
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("clip", type=Path)
-    ap.add_argument("body")
-    ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--source-body", default="builtin:male_average")
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        src = source_as_glb(args.clip, args.source_body, Path(tmp) / f"{args.clip.stem}.glb", args.frames, 30.0)
-        prepared = prepare(JobInputs(src, args.body, None, method_options("copy", 30.0)), max_frames=args.frames)
-        s_char, s_map, s_motion = load_judged_file(src)
-    s_motion = resample(s_motion, 30.0).slice(0, prepared.before.num_frames)
-    tgt = prepared.target
+    args = case_parser(__doc__).parse_args()
+    case = prepare_case(args.clip, args.body, args.frames, args.source_body, method="copy")
+    prepared, tgt = case.prepared, case.prepared.target
     rows = {
-        "source": series(measure_acceptance(s_char, s_map, s_motion), rest_toe_heights(s_char, s_map)),
+        "source": series(case.source, rest_toe_heights(case.source_character, case.source_mapping)),
         "before": series(measure_acceptance(tgt.character, tgt.mapping, prepared.before),
                          rest_toe_heights(tgt.character, tgt.mapping)),  # fmt: skip
     }

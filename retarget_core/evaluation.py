@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from pydantic import BaseModel, Field
 
+from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.jobs import JobInputs
 from retarget_core.loading import load_character
@@ -35,6 +36,7 @@ from retarget_core.metrics.acceptance import (
 )
 from retarget_core.metrics.report import MetricsReport
 from retarget_core.model.inference import network_weights
+from retarget_core.motion import Motion
 from retarget_core.options import RetargetOptions
 from retarget_core.stages import REFINEMENT_STAGE_NAMES, stage_info
 
@@ -482,19 +484,26 @@ def _evaluate_clip(
     return clip_info, rows, lines
 
 
-def _source_acceptance(path: Path, prepared: Any) -> ClipAcceptance:
-    """The judge's measures of the source: a GLB with its own body as the judge reads the file (its own floor,
-    no re-grounding); otherwise the source motion on the body the pipeline gave it."""
-    if path.suffix.lower() in (".glb", ".gltf"):
-        try:
-            character, mapping, motion = load_judged_file(path)
-        except ValueError:
-            pass
-        else:
-            from retarget_core.resample import resample
+def judged_source(path: Path, prepared: Any) -> tuple[Character, JointMapping, Motion] | None:
+    """A GLB source with its own body as the judge reads the file (its own floor, no re-grounding), its clip
+    resampled and cut as ``prepared``'s source view; None when ``path`` is not such a file."""
+    if path.suffix.lower() not in (".glb", ".gltf"):
+        return None
+    try:
+        character, mapping, motion = load_judged_file(path)
+    except ValueError:
+        return None
+    from retarget_core.resample import resample
 
-            clip = resample(motion, prepared.source_view.fps).slice(0, prepared.source_view.num_frames)
-            return measure_acceptance(character, mapping, clip)
+    return character, mapping, resample(motion, prepared.source_view.fps).slice(0, prepared.source_view.num_frames)
+
+
+def _source_acceptance(path: Path, prepared: Any) -> ClipAcceptance:
+    """The judge's measures of the source: :func:`judged_source` when the file has its own body; otherwise the
+    source motion on the body the pipeline gave it."""
+    judged = judged_source(path, prepared)
+    if judged is not None:
+        return measure_acceptance(*judged)
     p = prepared
     return measure_acceptance(p.source_body.character, p.source_body.mapping, p.source_view)
 
@@ -532,6 +541,7 @@ __all__ = [
     "bulk_groups",
     "bulk_index",
     "group_rows",
+    "judged_source",
     "method_options",
     "run_evaluation",
     "source_as_glb",
