@@ -2,7 +2,8 @@
 counts (deepest counted limb vertex > 1 cm, at 1.80 m) before and after the stage alone, with the part pair
 (the vertex's part, the part it is inside), the depth the judge sees, the depth the stage's own SDF check sees
 for that vertex (weighted, beyond rest), whether the stage optimised the frame and the never-worse fallback
-weight it kept there.
+weight it kept there. The clip is resampled to 30 fps as `retarget eval` does, so the frames are the
+evaluation's.
 
     PYTHONPATH=. RETARGET_CACHE_DIR=/tmp/rcache-coll flock /tmp/heavy.lock python benchmarks/collision_diag.py \
         /work/shared/data/motions/cmu/005_02.bvh /root/.cache/retarget/heldout/heldout_skinny-86cd9535396e.glb
@@ -47,7 +48,7 @@ def part_pairs(character, mapping, posed: np.ndarray) -> list[tuple[str, str, fl
 def main() -> None:
     a = case_parser(None, frames=150).parse_args()
     torch.set_num_threads(1)
-    case = prepare_case(a.clip, a.body, a.frames, a.source_body, method="copy", fps=None)
+    case = prepare_case(a.clip, a.body, a.frames, a.source_body, method="copy")
     prepared, src = case.prepared, case.source
     ctx = refine_context(prepared)
     tgt = prepared.target

@@ -43,13 +43,12 @@ class HeldoutCase:
     source_mapping: JointMapping
 
 
-def prepare_case(clip: Path, body: str, frames: int, source_body: str, method: str = "full",
-                 fps: float | None = JUDGE_FPS) -> HeldoutCase:  # fmt: skip
-    """``clip`` (its first ``frames`` frames at ``fps``) sent as a GLB on ``source_body`` and prepared on ``body``
+def prepare_case(clip: Path, body: str, frames: int, source_body: str, method: str = "full") -> HeldoutCase:
+    """``clip`` (its first ``frames`` frames at 30 fps) sent as a GLB on ``source_body`` and prepared on ``body``
     with ``method``'s options (see :func:`retarget_core.evaluation.method_options`)."""
     with tempfile.TemporaryDirectory(prefix="heldout-case-") as tmp:
-        glb = source_as_glb(clip, source_body, Path(tmp) / f"{clip.stem}.glb", frames, fps)
-        prepared = prepare(JobInputs(glb, body, None, method_options(method, fps)), max_frames=frames)
+        glb = source_as_glb(clip, source_body, Path(tmp) / f"{clip.stem}.glb", frames, JUDGE_FPS)
+        prepared = prepare(JobInputs(glb, body, None, method_options(method, JUDGE_FPS)), max_frames=frames)
         judged = judged_source(glb, prepared)
     if judged is None:
         raise ValueError(f"{clip}: the source GLB could not be read back with its body")
