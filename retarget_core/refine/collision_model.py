@@ -46,10 +46,9 @@ from retarget_core.refine.collision_check import (
     contact_instances,
     judged_allowed,
     stage_figures,
-    worse_frames,
 )
 from retarget_core.refine.context import RefineContext, StageOutcome
-from retarget_core.refine.temporal import fallback_weights
+from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collisions.pt"
 WEIGHTS_ENV = "RETARGET_COLLISION_WEIGHTS"
@@ -149,30 +148,15 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
     magnitude = resid.norm(dim=-1).amax(-1)  # (F,)
     check_set = torch.nonzero(magnitude > p.changed_rad).flatten()
     before = check_frames(ch, sdf, rot_in, trans, torch.arange(f_n), contacts, tol, allowed=allowed)
-    final = _copy_check(before)
-    weight, cap = torch.ones(f_n), torch.ones(f_n)
-    for _ in range(p.fallback_rounds):
-        if len(check_set) == 0:
-            break
-        after = check_frames(ch, sdf, _apply(rot_in, joints, resid * weight[:, None, None]), trans, check_set, contacts,
-                             tol, allowed=allowed)  # fmt: skip
-        _merge_into(final, after)
-        worse = worse_frames(before, after, contacts, p, scale)
-        if not bool(worse.any()):
-            check_set = check_set[:0]
-            break
-        bad = check_set[worse]  # halve the residual where it made things worse, to zero after a few rounds
-        half = weight[bad] * p.fallback_factor
-        cap[bad] = torch.where(half < p.fallback_floor, torch.zeros_like(half), half)
-        new_w = torch.minimum(weight, fallback_weights(cap, max(1, round(p.fallback_ramp * motion.fps / 30.0))))
-        check_set = torch.nonzero(new_w < weight - 1e-6).flatten()
-        weight = new_w
-        back = check_set[weight[check_set] == 0]
-        _restore(final, before, back, contacts)
-        check_set = check_set[weight[check_set] > 0]
-    if len(check_set):  # changes of the last round not checked: back to the input there
-        weight[check_set] = 0.0
-        _restore(final, before, check_set, contacts)
+
+    def measure(w: Tensor, frames: Tensor) -> FrameCheck:
+        return check_frames(ch, sdf, _apply(rot_in, joints, resid * w[:, None, None]), trans, frames, contacts, tol,
+                            allowed=allowed)  # fmt: skip
+
+    fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
+                                max(1, round(p.fallback_ramp * motion.fps / 30.0)), smooth=0)  # fmt: skip
+    guard = run_never_worse(NeverWorse.start(before, contacts), check_set, measure, p, scale, fallback)
+    final, weight = guard.final, guard.weight
     resid = resid * weight[:, None, None]
     changed = resid.norm(dim=-1).amax(-1) > p.changed_rad
     out_rot = _apply(rot_in, joints, resid)
@@ -190,27 +174,6 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
     }  # fmt: skip
     result = Motion(motion.skeleton, motion.fps, out_rot.to(motion.rotations.dtype), motion.translations.clone(), motion.name)
     return StageOutcome(result, report)
-
-
-def _copy_check(c: FrameCheck) -> FrameCheck:
-    return FrameCheck(c.frames, c.volume.clone(), c.max_depth.clone(), c.count.clone(), c.depth, c.contact.clone())
-
-
-def _merge_into(final: FrameCheck, after: FrameCheck) -> None:
-    idx = after.frames
-    final.volume[idx], final.max_depth[idx], final.count[idx] = after.volume, after.max_depth, after.count
-    upd = ~torch.isnan(after.contact)
-    final.contact[upd] = after.contact[upd]
-
-
-def _restore(final: FrameCheck, before: FrameCheck, frames: Tensor, contacts: ContactInstances) -> None:
-    """Frames blended fully back to the input read the input's figures again."""
-    if len(frames):
-        final.volume[frames], final.max_depth[frames] = before.volume[frames], before.max_depth[frames]
-        final.count[frames] = before.count[frames]
-        if contacts.count:
-            back = torch.isin(contacts.frame, frames)
-            final.contact[back] = before.contact[back]
 
 
 def run(ctx: RefineContext, motion: Motion) -> StageOutcome:

@@ -7,7 +7,7 @@ import torch
 
 from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.collision_mesh import MeshPairs
-from retarget_core.refine.collisions import _deepened_points, _mesh_inside
+from retarget_core.refine.collisions import deepened_points, mesh_inside
 from retarget_core.refine.temporal import fallback_weights, smooth_fallback_weights
 
 
@@ -47,14 +47,14 @@ def test_deepened_points_are_the_new_deeper_vertices_of_the_worse_frames() -> No
     # frame 1 (worse): vertex 0 went in 1 cm, vertex 2 by less than the tolerance; frame 2 (not worse): vertex 3
     after = _check([1, 2], torch.tensor([[0.01, 0.0, 0.001, 0.0], [0.0, 0.0, 0.0, 0.03]]))
     worse = torch.tensor([True, False])
-    got = _deepened_points(before, after, worse, points=torch.tensor([1]), tol=0.003)
+    got = deepened_points(before, after, worse, points=torch.tensor([1]), tol=0.003)
     assert got.tolist() == [0]
-    assert _deepened_points(before, after, worse, points=torch.tensor([0]), tol=0.003).tolist() == []
+    assert deepened_points(before, after, worse, points=torch.tensor([0]), tol=0.003).tolist() == []
 
 
 def test_mesh_inside_keeps_the_deep_pairs_of_the_given_frames() -> None:
     mesh = MeshPairs(torch.tensor([3, 3, 5, 7]), torch.tensor([10, 11, 12, 13]), torch.zeros(4, 3, dtype=torch.long),
                      torch.ones(4), torch.tensor([0.01, -0.002, 0.02, 0.02]))  # fmt: skip
-    kept = _mesh_inside(mesh, torch.tensor([3, 5]), tol=0.003)
+    kept = mesh_inside(mesh, torch.tensor([3, 5]), tol=0.003)
     assert kept is not None and kept.vertex.tolist() == [10, 12]
-    assert _mesh_inside(None, torch.tensor([3]), 0.003) is None
+    assert mesh_inside(None, torch.tensor([3]), 0.003) is None

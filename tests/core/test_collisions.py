@@ -278,7 +278,7 @@ def test_culled_contact_rows_give_the_same_instance_distances(bulky: Character) 
     (``near_contact_rows``): at the pose they were chosen on, every instance's distance is the full one's, with
     fewer pairs measured."""
     from retarget_core.refine.collision_energy import instance_distance, near_contact_rows
-    from retarget_core.refine.collisions import _contact_targets
+    from retarget_core.refine.collision_terms import contact_targets
     from retarget_core.refine.judged_contacts import judged_source_instances
     from retarget_core.refine.point_poser import PointPoser
 
@@ -288,7 +288,7 @@ def test_culled_contact_rows_give_the_same_instance_distances(bulky: Character) 
     assert instances.count >= 3
     points = torch.arange(bulky.num_vertices)[::7]
     frames = torch.arange(near.num_frames)
-    targets = _contact_targets(ctx, instances, frames, points)
+    targets = contact_targets(ctx, instances, frames, points)
     poser = PointPoser(bulky, points, ctx.parts.joints)
     posed, mats, _ = poser(roma.unitquat_to_rotmat(near.rotations.float()), near.translations.float())
     full = instance_distance(ctx.sdf, targets, posed, mats)
@@ -301,7 +301,8 @@ def test_planted_feet_weigh_more_on_their_planted_frames(bulky: Character) -> No
     from dataclasses import replace
 
     from retarget_core.refine.collision_check import ContactInstances
-    from retarget_core.refine.collisions import CollisionParams, _ee_weights
+    from retarget_core.refine.collision_params import CollisionParams
+    from retarget_core.refine.collision_problem import ee_weights
 
     frames = 6
     before = Motion(bulky.skeleton, 30.0, bulky.skeleton.rest_rotations.expand(frames, -1, -1).clone(),
@@ -313,7 +314,7 @@ def test_planted_feet_weigh_more_on_their_planted_frames(bulky: Character) -> No
     params = CollisionParams()
     names = ["LeftHand", "LeftFoot", "RightFoot"]
     active = torch.tensor([1, 2, 3, 4])
-    w = _ee_weights(ctx, ContactInstances(none, none, none), active, names, params)
+    w = ee_weights(ctx, ContactInstances(none, none, none), active, names, params)
     assert w[:, 0].tolist() == [params.end_effectors["LeftHand"]] * 4
     assert w[:, 1].tolist() == [params.planted_foot_ee_weight] * 2 + [params.end_effectors["LeftFoot"]] * 2
     assert w[:, 2].tolist() == [params.end_effectors["RightFoot"]] * 4

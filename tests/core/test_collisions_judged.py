@@ -12,7 +12,7 @@ from retarget_core.body_parts import CLUSTERS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import judged_allowed, judged_cluster_table
 from retarget_core.refine.collision_energy import candidate_triples, penetration_energy
-from retarget_core.refine.collisions import _ee_targets
+from retarget_core.refine.collision_problem import ee_targets
 from retarget_core.refine.point_poser import PointPoser
 from tests.core.test_collisions import _arm_boxes, _context, _pushed_in
 
@@ -77,25 +77,26 @@ def test_end_effector_targets_follow_the_source_relative_to_the_hips() -> None:
     _, g_in = kinematics.forward_kinematics(ch.skeleton.parents, before.rotations[frames], before.translations[frames])
     _, g_src = kinematics.forward_kinematics(ch.skeleton.parents, src_rot[frames], src_tr[frames])
     hand = ctx.target_mapping.joints["LeftHand"]
-    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.0})[:, 0], g_in[:, hand])
-    full = _ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 1.0})[:, 0]
+    assert torch.allclose(ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.0})[:, 0], g_in[:, hand])
+    full = ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 1.0})[:, 0]
     assert torch.allclose(full - g_in[:, 0], g_src[:, hand] - g_src[:, 0], atol=1e-5)
-    half = _ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.5})[:, 0]
+    half = ee_targets(ctx, g_in, frames, ["LeftHand"], {"LeftHand": 0.5})[:, 0]
     assert torch.allclose(half, 0.5 * (full + g_in[:, hand]), atol=1e-5)
     # A name without a pull (the feet by default) stays at the input's position.
-    assert torch.allclose(_ee_targets(ctx, g_in, frames, ["LeftHand"], {})[:, 0], g_in[:, hand])
+    assert torch.allclose(ee_targets(ctx, g_in, frames, ["LeftHand"], {})[:, 0], g_in[:, hand])
 
 
 def test_a_hand_in_contact_is_placed_by_its_contact_not_its_end_effector_target() -> None:
     from retarget_core.refine.collision_check import ContactInstances
-    from retarget_core.refine.collisions import CollisionParams, _ee_weights
+    from retarget_core.refine.collision_params import CollisionParams
+    from retarget_core.refine.collision_problem import ee_weights
 
     ch = _arm_boxes()
     ctx = _context(ch, _pushed_in(ch, 0.02, frames=5))
     hand = ctx.parts.find("LeftHand")
     contacts = ContactInstances(torch.tensor([1, 2]), torch.tensor([hand, hand]), torch.tensor([1, 1]))
     params = CollisionParams()
-    w = _ee_weights(ctx, contacts, torch.tensor([0, 2, 4]), ["LeftHand", "Head"], params)
+    w = ee_weights(ctx, contacts, torch.tensor([0, 2, 4]), ["LeftHand", "Head"], params)
     assert w.shape == (3, 2)
     assert w[:, 1].eq(params.end_effectors["Head"]).all()
     expected = [params.end_effectors["LeftHand"], params.contact_ee_weight, params.end_effectors["LeftHand"]]

@@ -1,0 +1,121 @@
+"""The never-worse check both collision stages end with: every changed frame is measured with all vertices, and
+where penetration or a contact got worse than in the input the change is repaired (when the stage can) or
+blended back toward the input, smoothly, in rounds.
+
+A stage gives two callbacks: ``measure(weight, frames)`` measures its result with the change scaled by
+``weight (F,)`` on clip ``frames (n,)``; ``repair(after, worse)`` (optional) tries to mend the worse frames and
+returns the frames to measure again, or None when it has nothing left to try.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from retarget_core.refine.collision_check import ContactInstances, FrameCheck, WorseLimits, worse_frames
+from retarget_core.refine.temporal import smooth_fallback_weights
+
+
+@dataclass(frozen=True)
+class FallbackSettings:
+    """How a worse frame's change is withdrawn: scaled by ``factor`` per round, dropped below ``floor``, blended
+    over ``ramp`` frames (at the clip's rate) with ``smooth`` frames of erosion and smoothing; ``rounds`` rounds."""
+
+    rounds: int
+    factor: float
+    floor: float
+    ramp: int
+    smooth: int
+
+
+Measure = Callable[[Tensor, Tensor], FrameCheck]
+Repair = Callable[[FrameCheck, Tensor], "Tensor | None"]
+
+
+@dataclass
+class NeverWorse:
+    """The check's state: ``before`` (the input, every frame), ``final`` (the figures of the result so far),
+    ``weight (F,)`` the share of the change kept per frame, ``cap (F,)`` its ceiling where it was worse."""
+
+    before: FrameCheck
+    final: FrameCheck
+    weight: Tensor
+    cap: Tensor
+    contacts: ContactInstances
+
+    @classmethod
+    def start(cls, before: FrameCheck, contacts: ContactInstances) -> NeverWorse:
+        f_n = len(before.frames)
+        return cls(before, copy_check(before), torch.ones(f_n), torch.ones(f_n), contacts)
+
+    def merge(self, after: FrameCheck) -> None:
+        """The measured frames of ``after`` replace the result's figures (contacts where measured)."""
+        idx = after.frames
+        self.final.volume[idx], self.final.max_depth[idx] = after.volume, after.max_depth
+        self.final.count[idx] = after.count
+        measured = ~torch.isnan(after.contact)
+        self.final.contact[measured] = after.contact[measured]
+
+    def restore(self, frames: Tensor) -> None:
+        """Frames that are the input's again read the input's figures."""
+        if len(frames) == 0:
+            return
+        b, f = self.before, self.final
+        f.volume[frames], f.max_depth[frames], f.count[frames] = b.volume[frames], b.max_depth[frames], b.count[frames]
+        if self.contacts.count:
+            back = torch.isin(self.contacts.frame, frames)
+            f.contact[back] = b.contact[back]
+
+    def fall_back(self, bad: Tensor, s: FallbackSettings) -> Tensor:
+        """Scale the change down on frames ``bad`` and ramp around them; the frames whose weight changed and is
+        still above zero (to measure again)."""
+        scaled = self.weight[bad] * s.factor
+        self.cap[bad] = torch.where(scaled < s.floor, torch.zeros_like(scaled), scaled)
+        new_w = torch.minimum(self.weight, smooth_fallback_weights(self.cap, s.ramp, s.smooth))
+        changed = torch.nonzero(new_w < self.weight - 1e-6).flatten()
+        self.weight = new_w
+        self.restore(changed[new_w[changed] == 0])
+        return changed[new_w[changed] > 0]
+
+    def give_up(self, frames: Tensor) -> None:
+        """Changes that were never measured go back to the input."""
+        self.weight[frames] = 0.0
+        self.restore(frames)
+
+
+def copy_check(c: FrameCheck) -> FrameCheck:
+    """A copy of ``c`` whose per-frame figures can be changed in place (``depth`` shared)."""
+    return FrameCheck(c.frames, c.volume.clone(), c.max_depth.clone(), c.count.clone(), c.depth, c.contact.clone())
+
+
+def run_never_worse(state: NeverWorse, frames: Tensor, measure: Measure, limits: WorseLimits, scale: float,
+                    settings: FallbackSettings, repair: Repair | None = None,
+                    repair_rounds: int = 0) -> NeverWorse:  # fmt: skip
+    """Measure the changed ``frames``, repair or fall back where worse, until nothing is worse (``limits`` and
+    ``scale`` as :func:`worse_frames`); ``state.weight`` ends as the share of the change to keep per frame."""
+    repairs = 0
+    for _ in range(settings.rounds + repair_rounds):
+        if len(frames) == 0:
+            break
+        after = measure(state.weight, frames)
+        worse = worse_frames(state.before, after, state.contacts, limits, scale)
+        if not bool(worse.any()):
+            state.merge(after)
+            frames = frames[:0]
+            break
+        if repair is not None and repairs < repair_rounds:
+            again = repair(after, worse)
+            if again is not None:
+                repairs += 1
+                frames = again
+                continue
+        state.merge(after)
+        frames = state.fall_back(frames[worse], settings)
+    state.give_up(frames)
+    return state
+
+
+__all__ = ["FallbackSettings", "NeverWorse", "copy_check", "run_never_worse"]

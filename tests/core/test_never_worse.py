@@ -1,0 +1,77 @@
+"""The never-worse check both collision stages share (:mod:`retarget_core.refine.never_worse`), on a toy stage
+whose penetration grows with its change on some frames: worse frames fall back toward the input, the others keep
+the change, a repair is tried before any fallback, and what was never measured goes back to the input."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from retarget_core.refine.collision_check import ContactInstances, FrameCheck
+from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
+
+F = 40
+NO_CONTACTS = ContactInstances(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long))
+SETTINGS = FallbackSettings(rounds=4, factor=0.5, floor=0.2, ramp=4, smooth=0)
+
+
+@dataclass(frozen=True)
+class Limits:
+    worse_volume_fraction: float = 0.02
+    worse_volume_m3: float = 1e-9
+    worse_depth_m: float = 0.002
+    contact_ok_m: float = 0.02
+
+
+def _check(frames: Tensor, depth: Tensor) -> FrameCheck:
+    n = len(frames)
+    return FrameCheck(frames, depth * 1e-4, depth, (depth > 0).float(), torch.zeros(n, 1), torch.zeros(0))
+
+
+def _toy(harm: Tensor):
+    """A stage whose change deepens frame f by ``harm[f] * weight[f]`` (m) over an input 1 cm deep."""
+    before = _check(torch.arange(F), torch.full((F,), 0.01))
+
+    def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
+        return _check(frames, 0.01 + harm[frames] * weight[frames])
+
+    return before, measure
+
+
+def test_worse_frames_fall_back_and_the_others_keep_the_change() -> None:
+    harm = torch.zeros(F)
+    harm[20] = 0.05  # 5 cm deeper with the whole change: worse at any weight above 0.04
+    before, measure = _toy(harm - 0.005)  # every other frame 5 mm shallower: better
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, SETTINGS)
+    assert float(guard.weight[20]) == 0.0  # halved to 0.5, 0.25, then dropped below the floor
+    assert float(guard.weight[0]) == 1.0 and float(guard.weight[-1]) == 1.0  # far from it the change stays whole
+    assert 0.0 < float(guard.weight[18]) < 1.0  # ramped around it
+    assert bool((guard.final.max_depth <= before.max_depth + 0.002).all())  # never worse on any frame
+
+
+def test_a_repair_is_tried_before_falling_back() -> None:
+    harm = torch.zeros(F)
+    harm[10] = 0.05
+    before, measure = _toy(harm)
+    calls: list[list[int]] = []
+
+    def repair(after: FrameCheck, worse: Tensor) -> Tensor | None:
+        calls.append(after.frames[worse].tolist())
+        harm[10] = 0.0  # the repair mends it
+        return after.frames[worse]
+
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0,
+                            SETTINGS, repair, repair_rounds=2)  # fmt: skip
+    assert calls == [[10]]
+    assert bool((guard.weight == 1.0).all())  # nothing fell back
+
+
+def test_changes_never_measured_go_back_to_the_input() -> None:
+    harm = torch.full((F,), 0.05)  # worse everywhere, at every weight: rounds run out
+    before, measure = _toy(harm)
+    one_round = FallbackSettings(rounds=1, factor=0.5, floor=0.2, ramp=4, smooth=0)
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, one_round)
+    assert bool((guard.weight == 0.0).all())
+    assert torch.equal(guard.final.max_depth, before.max_depth)
