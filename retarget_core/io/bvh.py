@@ -54,6 +54,9 @@ from retarget_core.skeleton import Skeleton
 MAX_HIERARCHY_LINE = 64 * 1024
 """Longest hierarchy line accepted (characters); real files stay under a few hundred."""
 
+MAX_JOINT_NAME_CHARS = 1000
+"""Longest joint name accepted (characters); names travel into mapping reports, messages and the database."""
+
 MAX_CHARS_PER_VALUE = 48
 """Generous upper bound on the characters one MOTION value takes, separator included."""
 
@@ -184,6 +187,10 @@ def _parse_hierarchy(lines: _Lines, max_joints: int) -> list[_Joint]:
             brace = True
         if not end_site and not name_tokens:
             raise lines.error("a ROOT/JOINT has no name")
+        chars = sum(map(len, name_tokens)) + len(name_tokens) - 1
+        if chars > MAX_JOINT_NAME_CHARS:
+            raise LimitExceededError(f"line {lines.line}: a joint name of {chars} characters (the limit is "
+                                     f"{MAX_JOINT_NAME_CHARS}, MAX_JOINT_NAME_CHARS)", lines.label)
         if len(joints) >= max_joints:
             raise LimitExceededError(f"more than {max_joints} joints (setting max_joints)", lines.label)
         if not brace:

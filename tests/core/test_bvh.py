@@ -352,6 +352,20 @@ def test_too_many_joints(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
 
 
 @pytest.mark.timeout(10)
+def test_joint_name_over_the_limit_is_refused_naming_it(tmp_path: Path) -> None:
+    limit = bvh_module.MAX_JOINT_NAME_CHARS
+    longest = read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", "JOINT " + "B" * limit), "ok.bvh"))
+    assert longest.skeleton.names[1] == "B" * limit
+    start = time.perf_counter()
+    with pytest.raises(LimitExceededError, match=f"60000 characters .*limit is {limit}, MAX_JOINT_NAME_CHARS"):
+        read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", "JOINT " + "B" * 60_000)))
+    assert time.perf_counter() - start < 1.0
+    spaced = "JOINT " + " ".join(["b"] * (limit // 2 + 1))  # tokens joined by spaces count with their spaces
+    with pytest.raises(LimitExceededError, match=f"{limit + 1} characters"):
+        read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", spaced)))
+
+
+@pytest.mark.timeout(10)
 def test_deep_nesting_hits_the_joint_limit_without_recursion(tmp_path: Path) -> None:
     depth = 20_000
     text = "HIERARCHY\nROOT r\n{\nOFFSET 0 0 0\n" + "JOINT j\n{\nOFFSET 0 1 0\nCHANNELS 1 Xrotation\n" * depth

@@ -89,3 +89,24 @@ def test_register_builtins(sqlite_settings: Settings, monkeypatch: pytest.Monkey
     assets.register_builtins(sqlite_settings)  # idempotent: kept, not made again
     with session_scope(sqlite_settings.resolved_database_url) as s:
         assert s.get(Asset, "builtin:male_average").sha256 == sha
+
+
+@pytest.mark.timeout(30)
+def test_motion_with_a_60000_character_joint_name_is_refused_at_once(sqlite_settings: Settings, samples: Path,
+                                                                     tmp_path: Path) -> None:
+    """Such a name once took half a minute in the message redaction; now the reader refuses it by its limit."""
+    import time
+
+    from retarget_core.io.bvh import MAX_JOINT_NAME_CHARS
+
+    text = (samples / "motions" / "007_03.bvh").read_text()
+    hostile = tmp_path / "long.bvh"
+    hostile.write_text(text.replace("JOINT CC_Base_L_PinkyToe1\n", "JOINT " + "J" * 60_000 + "\n", 1))
+    ref = store(sqlite_settings, hostile)
+    c = call(sqlite_settings)
+    start = time.perf_counter()
+    assets.run_inspect(sqlite_settings, c, ref, "motion", "long.bvh")
+    took = time.perf_counter() - start
+    res = outcome(sqlite_settings, c)
+    assert res.status == "error" and res.message.startswith("long.bvh: "), res.message
+    assert f"limit is {MAX_JOINT_NAME_CHARS}" in res.message and took < 5.0, (res.message, took)
