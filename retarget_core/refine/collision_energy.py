@@ -115,27 +115,46 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
     return TripleSet(groups)
 
 
+def to_segment(mats: Tensor, x: Tensor) -> Tensor:
+    """Points ``x (N, 3)`` taken back to their segments' rest frames by the rigid transforms ``mats (N, 3, 4)``."""
+    return torch.einsum("nji,nj->ni", mats[..., :3], x - mats[..., 3])
+
+
+def group_depth(sdf: PartSDF, seg: int, x: Tensor, mats: Tensor, rest: Tensor) -> Tensor:
+    """Depth ``(N,)`` (m) of posed points ``x (N, 3)`` in segment ``seg`` (transforms ``mats (N, 3, 4)``) beyond
+    the bind pose's ``rest (N,)`` (negative outside)."""
+    return -segment_distance(sdf, seg, to_segment(mats, x)) - rest
+
+
+def gather_rows(posed: Tensor, seg_mats: Tensor, frame: Tensor, point: Tensor, seg: int) -> tuple[Tensor, Tensor]:
+    """Posed points ``(N, 3)`` of ``posed (Fa, P, 3)`` and segment ``seg``'s transforms ``(N, 3, 4)`` of
+    ``seg_mats (Fa, S, 3, 4)`` at the rows ``frame (N,)``, ``point (N,)``."""
+    x = posed.reshape(-1, 3).index_select(0, frame * posed.shape[1] + point)
+    return x, seg_mats[:, seg].index_select(0, frame)
+
+
 def triple_depths(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor) -> list[Tensor]:
     """Per group of ``triples``, the depth ``(N,)`` (m) of each triple's point in its segment beyond the
     bind pose's (negative outside)."""
-    p_n = posed.shape[1]
-    flat = posed.reshape(-1, 3)
-    out = []
-    for j, f_i, pt, _tol, _weight, rest in triples.groups:
-        x = flat.index_select(0, f_i * p_n + pt)
-        r, t = seg_mats[:, j, :, :3].index_select(0, f_i), seg_mats[:, j, :, 3].index_select(0, f_i)
-        local = torch.einsum("nji,nj->ni", r, x - t)
-        out.append(-segment_distance(sdf, j, local) - rest)
-    return out
+    return [group_depth(sdf, j, *gather_rows(posed, seg_mats, f_i, pt, j), rest)
+            for j, f_i, pt, _tol, _weight, rest in triples.groups]  # fmt: skip
+
+
+def penetration_energy_rows(sdf: PartSDF, triples: TripleSet, xs: list[Tensor], mats: list[Tensor],
+                            scale: float) -> Tensor:  # fmt: skip
+    """Sum over triples of ``weight * relu(depth - tolerance)^2`` in cm^2 at 1.80 m (a scalar), from each group's
+    posed points ``xs[k] (N, 3)`` and segment transforms ``mats[k] (N, 3, 4)``."""
+    total = xs[0].new_zeros(()) if xs else torch.zeros(())
+    for (j, _, _, tol, weight, rest), x, m in zip(triples.groups, xs, mats, strict=True):
+        pen = (group_depth(sdf, j, x, m, rest) - tol).clamp_min(0.0) * (100.0 * scale)
+        total = total + (weight * pen.pow(2)).sum()
+    return total
 
 
 def penetration_energy(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor, scale: float) -> Tensor:
-    """Sum over triples of ``weight * relu(depth - tolerance)^2`` in cm^2 at 1.80 m (a scalar)."""
-    total = posed.new_zeros(())
-    for (_, _, _, tol, weight, _), depth in zip(triples.groups, triple_depths(sdf, triples, posed, seg_mats), strict=True):
-        pen = (depth - tol).clamp_min(0.0) * (100.0 * scale)
-        total = total + (weight * pen.pow(2)).sum()
-    return total
+    """:func:`penetration_energy_rows` on ``posed (Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``."""
+    rows = [gather_rows(posed, seg_mats, f_i, pt, j) for j, f_i, pt, *_ in triples.groups]
+    return penetration_energy_rows(sdf, triples, [r[0] for r in rows], [r[1] for r in rows], scale)
 
 
 def near_triples(sdf: PartSDF, triples: TripleSet, posed: Tensor, seg_mats: Tensor, within: float) -> TripleSet:
@@ -185,31 +204,43 @@ class ContactTargets:
         return out
 
 
+def contact_row_points(targets: ContactTargets) -> list[tuple[int, Tensor, Tensor, Tensor]]:
+    """Per measured segment ``j``: ``(j, rows (n,), frame (n,), point (n,))`` of the pair rows measured against it."""
+    return [(j, sel, targets.frame.index_select(0, sel), targets.point.index_select(0, sel))
+            for j, sel in targets.segment_rows()]  # fmt: skip
+
+
+def contact_distances_rows(sdf: PartSDF, targets: ContactTargets, xs: list[Tensor],
+                           mats: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """Signed distances ``(M,)`` (m) of the measured (pair row, segment) combinations, their rows and segments
+    ``(M,)``, from the posed points ``xs[k] (n, 3)`` and transforms ``mats[k] (n, 3, 4)`` of each
+    :func:`contact_row_points` entry."""
+    measured = targets.segment_rows()
+    if not measured:
+        e = torch.zeros(0, dtype=torch.long)
+        return torch.zeros(0), e, e
+    ds = [segment_distance(sdf, j, to_segment(m, x)) for (j, _), x, m in zip(measured, xs, mats, strict=True)]
+    return torch.cat(ds), torch.cat([sel for _, sel in measured]), torch.cat([torch.full_like(sel, j) for j, sel in measured])
+
+
 def _row_distances(sdf: PartSDF, targets: ContactTargets, posed: Tensor,
                    seg_mats: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
-    """Signed distances ``(M,)`` (m) of the measured (pair row, segment) combinations, their rows and segments
-    ``(M,)``."""
-    p_n = posed.shape[1]
-    flat = posed.reshape(-1, 3)
-    ds, rows, segs = [], [], []
-    for j, sel in targets.segment_rows():
-        f = targets.frame.index_select(0, sel)
-        x = flat.index_select(0, f * p_n + targets.point.index_select(0, sel))
-        r, t = seg_mats[:, j, :, :3].index_select(0, f), seg_mats[:, j, :, 3].index_select(0, f)
-        ds.append(segment_distance(sdf, j, torch.einsum("nji,nj->ni", r, x - t)))
-        rows.append(sel)
-        segs.append(torch.full_like(sel, j))
-    if not ds:
-        e = torch.zeros(0, dtype=torch.long)
-        return posed.new_zeros(0), e, e
-    return torch.cat(ds), torch.cat(rows), torch.cat(segs)
+    """:func:`contact_distances_rows` on ``posed (Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``."""
+    rows = [gather_rows(posed, seg_mats, f, pt, j) for j, _, f, pt in contact_row_points(targets)]
+    d, r, s = contact_distances_rows(sdf, targets, [x for x, _ in rows], [m for _, m in rows])
+    return d.to(posed.dtype), r, s
+
+
+def nearest_per_instance(targets: ContactTargets, d: Tensor, rows: Tensor) -> Tensor:
+    """``(K,)`` the smallest of the row distances ``d (M,)`` per contact instance (rows ``(M,)``)."""
+    out = d.new_full((targets.count,), float("inf"))
+    return out.scatter_reduce(0, targets.instance.index_select(0, rows), d, "amin", include_self=True)
 
 
 def instance_distance(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor) -> Tensor:
     """``(K,)`` signed distance (m) of each contact instance's nearest hand point to its touched cluster."""
     d, rows, _ = _row_distances(sdf, targets, posed, seg_mats)
-    out = posed.new_full((targets.count,), float("inf"))
-    return out.scatter_reduce(0, targets.instance.index_select(0, rows), d, "amin", include_self=True)
+    return nearest_per_instance(targets, d, rows)
 
 
 def near_contact_rows(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor,
@@ -226,15 +257,23 @@ def near_contact_rows(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_
     return replace(targets, tested=tested)
 
 
+def contact_energy_rows(targets: ContactTargets, d: Tensor, rows: Tensor, scale: float, gap: float = 0.0) -> Tensor:
+    """Sum of ``relu(d - gap)^2`` (cm^2 at 1.80 m) over the active contact instances (a scalar) from the row
+    distances ``d (M,)`` of :func:`contact_distances_rows`: a hand farther than ``gap`` (m; ``targets.gap`` per
+    instance when set) from the part it touches is pulled back within it."""
+    if targets.count == 0:
+        return d.new_zeros(())
+    g: Tensor | float = targets.gap if targets.gap is not None else gap
+    return (((nearest_per_instance(targets, d, rows) - g).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
+
+
 def contact_energy(sdf: PartSDF, targets: ContactTargets, posed: Tensor, seg_mats: Tensor, scale: float,
                    gap: float = 0.0) -> Tensor:  # fmt: skip
-    """Sum of ``relu(d - gap)^2`` (cm^2 at 1.80 m) over the active contact instances (a scalar): a hand farther
-    than ``gap`` (m; ``targets.gap`` per instance when set) from the part it touches is pulled back within it."""
+    """:func:`contact_energy_rows` on ``posed (Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``."""
     if targets.count == 0:
         return posed.new_zeros(())
-    d = instance_distance(sdf, targets, posed, seg_mats)
-    g: Tensor | float = targets.gap if targets.gap is not None else gap
-    return (((d - g).clamp_min(0.0) * (100.0 * scale)).pow(2) * targets.active).sum()
+    d, rows, _ = _row_distances(sdf, targets, posed, seg_mats)
+    return contact_energy_rows(targets, d, rows, scale, gap)
 
 
 @dataclass
@@ -254,23 +293,38 @@ class ContactPairs:
 
 def pair_distance(pairs: ContactPairs, posed: Tensor) -> Tensor:
     """``(N,)`` distance (m) of each pair's two posed points."""
-    p_n = posed.shape[1]
     flat = posed.reshape(-1, 3)
-    xi = flat.index_select(0, pairs.frame * p_n + pairs.i)
-    xj = flat.index_select(0, pairs.frame * p_n + pairs.j)
-    return (xi - xj).norm(dim=-1)
+    base = pairs.frame * posed.shape[1]
+    return (flat.index_select(0, base + pairs.i) - flat.index_select(0, base + pairs.j)).norm(dim=-1)
+
+
+def pair_energy_rows(pairs: ContactPairs, xi: Tensor, xj: Tensor, scale: float, allowance: float) -> Tensor:
+    """Sum of ``relu(d - d_input - allowance)^2`` (cm^2 at 1.80 m) over the pairs (a scalar) posed at
+    ``xi, xj (N, 3)``."""
+    grow = (xi - xj).norm(dim=-1) - pairs.input_distance - allowance
+    return (grow.clamp_min(0.0) * (100.0 * scale)).pow(2).sum()
 
 
 def pair_energy(pairs: ContactPairs, posed: Tensor, scale: float, allowance: float) -> Tensor:
-    """Sum of ``relu(d - d_input - allowance)^2`` (cm^2 at 1.80 m) over the pairs (a scalar)."""
+    """:func:`pair_energy_rows` on ``posed (Fa, P, 3)``."""
     if pairs.count == 0:
         return posed.new_zeros(())
-    grow = pair_distance(pairs, posed) - pairs.input_distance - allowance
-    return (grow.clamp_min(0.0) * (100.0 * scale)).pow(2).sum()
+    flat = posed.reshape(-1, 3)
+    base = pairs.frame * posed.shape[1]
+    return pair_energy_rows(pairs, flat.index_select(0, base + pairs.i), flat.index_select(0, base + pairs.j), scale, allowance)
 
 
 __all__ = [
     "ContactPairs",
+    "contact_distances_rows",
+    "contact_energy_rows",
+    "contact_row_points",
+    "gather_rows",
+    "group_depth",
+    "nearest_per_instance",
+    "pair_energy_rows",
+    "penetration_energy_rows",
+    "to_segment",
     "pair_distance",
     "pair_energy",
     "ContactTargets",

@@ -210,21 +210,34 @@ class MeshTerms:
         return int(self.frame.shape[0])
 
 
+def plane_distance(sign: Tensor, x: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+    """``(N,)`` signed distance (m, positive outside) of points ``x (N, 3)`` to the planes of triangles ``a, b, c
+    (N, 3)``, oriented by ``sign (N,)``."""
+    n = torch.cross(b - a, c - a, dim=-1)
+    n = n / (n.norm(dim=-1, keepdim=True) + 1e-12)
+    return sign * ((x - a) * n).sum(-1)
+
+
 def mesh_signed_distance(terms: MeshTerms, posed: Tensor) -> Tensor:
     """``(N,)`` signed distance (m, positive outside) of each pair's posed point to its posed triangle's plane;
     ``posed (Fa, P, 3)``."""
-    p_n = posed.shape[1]
     flat = posed.reshape(-1, 3)
-    base = terms.frame * p_n
+    base = terms.frame * posed.shape[1]
     x = flat.index_select(0, base + terms.point)
     a, b, c = (flat.index_select(0, base + terms.tri[:, k]) for k in range(3))
-    n = torch.cross(b - a, c - a, dim=-1)
-    n = n / (n.norm(dim=-1, keepdim=True) + 1e-12)
-    return terms.sign * ((x - a) * n).sum(-1)
+    return plane_distance(terms.sign, x, a, b, c)
+
+
+def mesh_energy_rows(terms: MeshTerms, x: Tensor, a: Tensor, b: Tensor, c: Tensor, scale: float,
+                     clearance: float) -> Tensor:  # fmt: skip
+    """Sum of ``relu(clearance - d)^2`` (cm^2 at 1.80 m) over the pairs (a scalar), posed points ``x (N, 3)`` and
+    triangles ``a, b, c (N, 3)``."""
+    d = plane_distance(terms.sign, x, a, b, c)
+    return ((clearance - d).clamp_min(0.0) * (100.0 * scale)).pow(2).sum()
 
 
 def mesh_energy(terms: MeshTerms, posed: Tensor, scale: float, clearance: float) -> Tensor:
-    """Sum of ``relu(clearance - d)^2`` (cm^2 at 1.80 m) over the pairs (a scalar)."""
+    """:func:`mesh_energy_rows` on ``posed (Fa, P, 3)``."""
     if terms.count == 0:
         return posed.new_zeros(())
     d = mesh_signed_distance(terms, posed)
@@ -239,6 +252,8 @@ __all__ = [
     "MeshSetup",
     "mesh_setup",
     "mesh_energy",
+    "mesh_energy_rows",
+    "plane_distance",
     "mesh_pairs_of_motion",
     "mesh_signed_distance",
 ]

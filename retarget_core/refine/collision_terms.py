@@ -16,6 +16,7 @@ from retarget_core.refine.collision_energy import (
     ContactTargets,
     TripleSet,
     candidate_triples,
+    contact_row_points,
     instance_distance,
     pair_distance,
 )
@@ -23,7 +24,7 @@ from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms
 from retarget_core.refine.collision_params import CollisionParams
 from retarget_core.refine.collision_problem import Ground, Problem, hold_table
 from retarget_core.refine.context import RefineContext
-from retarget_core.refine.point_poser import PointPoser
+from retarget_core.refine.point_poser import PointPoser, RowPlan, pose_rows
 
 
 @dataclass
@@ -40,12 +41,15 @@ class Terms:
 
 @dataclass
 class GroundTerms:
-    """Hand and foot points kept above the floor: ``point (G,)`` indices into the poser's points, ``floor (Fa, G)``
-    the height (m) each may not go below on the optimised frames."""
+    """Hand and foot points kept above the floor, per (frame, point) row ``(N,)``: ``frame`` optimised frame,
+    ``point`` index into the poser's points, ``floor`` the height (m) it may not go below."""
 
+    frame: Tensor
     point: Tensor
     floor: Tensor
 
+    def select(self, keep: Tensor) -> GroundTerms:
+        return GroundTerms(self.frame[keep], self.point[keep], self.floor[keep])
 
 
 def contact_targets(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, points: Tensor,
@@ -108,16 +112,24 @@ def build_terms(ctx: RefineContext, prob: Problem, points: Tensor, contacts: Con
 
 
 def ground_terms(ctx: RefineContext, ground: Ground | None, frames: Tensor, points: Tensor) -> GroundTerms:
-    """The floor points of ``ground`` that are among ``points`` (indices into them), on the optimised ``frames``."""
+    """The floor points of ``ground`` that are among ``points`` (indices into them), on every optimised frame."""
+    e = torch.zeros(0, dtype=torch.long)
     if ground is None or len(ground.vertex) == 0:
-        return GroundTerms(torch.zeros(0, dtype=torch.long), torch.zeros(len(frames), 0))
+        return GroundTerms(e, e, torch.zeros(0))
     point_of = torch.full((ctx.target.num_vertices,), -1, dtype=torch.long)
     point_of[points] = torch.arange(len(points))
     idx = point_of[ground.vertex]
-    ok = idx >= 0
-    return GroundTerms(idx[ok], ground.floor[frames][:, ok])
+    ok = torch.nonzero(idx >= 0).flatten()
+    floor = ground.floor[frames][:, ok]  # (Fa, G)
+    frame = torch.arange(len(frames)).repeat_interleave(len(ok))
+    return GroundTerms(frame, idx[ok].repeat(len(frames)), floor.reshape(-1))
 
 
+def near_ground(ground: GroundTerms, posed: Tensor, within: float) -> GroundTerms:
+    """The floor rows whose point is less than ``within`` (m) above its floor on ``posed (Fa, P, 3)``: the only
+    ones whose term can become non-zero during the next few steps."""
+    y = posed[..., 1].reshape(-1).index_select(0, ground.frame * posed.shape[1] + ground.point)
+    return ground.select(y - ground.floor < within)
 
 
 def mesh_terms(ctx: RefineContext, mesh: MeshPairs | None, frames: Tensor, points: Tensor) -> MeshTerms:
@@ -161,8 +173,52 @@ def compact(ctx: RefineContext, terms: Terms) -> Terms:
     targets = ContactTargets(t.frame, remap[t.point], t.cluster, t.instance, t.active, t.segments, t.gap, t.tested)
     pairs = ContactPairs(pr.frame, remap[pr.i], remap[pr.j], pr.input_distance)
     mesh = MeshTerms(me.frame, remap[me.point], remap[me.tri], me.sign)
-    return Terms(poser, TripleSet(groups), targets, pairs, mesh, GroundTerms(remap[gr.point], gr.floor))
+    return Terms(poser, TripleSet(groups), targets, pairs, mesh, GroundTerms(gr.frame, remap[gr.point], gr.floor))
 
 
+@dataclass
+class EnergyRows:
+    """What one energy evaluation reads, in the order its terms read it: ``points`` the distinct (frame, point)
+    rows to pose, ``point_index (N,)`` every term's rows into them, cut by ``point_sizes``; ``seg_rows (M,)``
+    rows of the flattened skinning transforms ``(Fa * J, 12)`` of the segments the points are measured in, cut
+    by ``seg_sizes``."""
 
-__all__ = ["GroundTerms", "Terms", "build_terms", "compact", "contact_pairs", "contact_targets", "ground_terms", "mesh_terms"]
+    points: RowPlan
+    point_index: Tensor
+    point_sizes: list[int]
+    seg_rows: Tensor
+    seg_sizes: list[int]
+
+
+def energy_rows(terms: Terms, num_joints: int) -> EnergyRows:
+    """The rows of ``terms`` (transforms of ``num_joints`` joints): triple groups, contact segments, pairs
+    (i, j), mesh pairs (point, triangle corners), floor points."""
+    pts: list[tuple[Tensor, Tensor]] = []
+    segs: list[tuple[Tensor, int]] = []
+    for j, f_i, pt, *_ in terms.triples.groups:
+        pts.append((f_i, pt))
+        segs.append((f_i, j))
+    for j, _, f, pt in contact_row_points(terms.targets):
+        pts.append((f, pt))
+        segs.append((f, j))
+    pr, me, gr = terms.pairs, terms.mesh, terms.ground
+    pts += [(pr.frame, pr.i), (pr.frame, pr.j), (me.frame, me.point)] + [(me.frame, me.tri[:, k]) for k in range(3)]
+    pts.append((gr.frame, gr.point))
+    p_n = len(terms.poser.points)
+    key = torch.cat([f * p_n + p for f, p in pts])
+    distinct, inverse = torch.unique(key, return_inverse=True)
+    plan = terms.poser.plan(distinct // p_n, distinct % p_n, num_joints)
+    seg_joint = terms.poser.seg_joints
+    seg_rows = torch.cat([f * num_joints + seg_joint[j] for f, j in segs]) if segs else torch.zeros(0, dtype=torch.long)
+    return EnergyRows(plan, inverse, [len(f) for f, _ in pts], seg_rows, [len(f) for f, _ in segs])
+
+
+def read_rows(rows: EnergyRows, mats: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+    """The posed points ``(n_k, 3)`` and segment transforms ``(m_k, 3, 4)`` of ``rows`` from skinning transforms
+    ``mats (Fa, J, 3, 4)``, in the terms' order."""
+    x = pose_rows(rows.points, mats).index_select(0, rows.point_index)
+    m = mats.reshape(-1, 12).index_select(0, rows.seg_rows).reshape(-1, 3, 4)
+    return list(torch.split(x, rows.point_sizes)), list(torch.split(m, rows.seg_sizes))
+
+
+__all__ = ["EnergyRows", "GroundTerms", "Terms", "build_terms", "compact", "energy_rows", "near_ground", "read_rows", "contact_pairs", "contact_targets", "ground_terms", "mesh_terms"]

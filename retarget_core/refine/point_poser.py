@@ -4,6 +4,8 @@ inner loop (a few small batched matrix products per joint instead of quaternion 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import roma
 import torch
 from torch import Tensor
@@ -39,10 +41,21 @@ class PointPoser:
         self.rest = character.vertices.float().index_select(0, points)  # (P, 3)
         self.weights = character.dense_weights().float().index_select(0, points)  # (P, J)
         self.seg_joints = torch.tensor(seg_joints, dtype=torch.long)
+        self.skin_joints = character.skin_joints.index_select(0, points)  # (P, K) sparse influences
+        self.skin_weights = character.skin_weights.float().index_select(0, points)  # (P, K)
 
     def __call__(self, local_rot: Tensor, local_trans: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """From local rotation matrices ``(F, J, 3, 3)`` and translations ``(F, J, 3)``: posed points
         ``(F, P, 3)``, segment transforms ``(F, S, 3, 4)`` (rest world -> posed world), joint positions ``(F, J, 3)``."""
+        mats, gpos = self.transforms(local_rot, local_trans)
+        f_n, j_n = mats.shape[:2]
+        blended = torch.matmul(self.weights, mats.reshape(f_n, j_n, 12)).reshape(f_n, -1, 3, 4)  # (F, P, 3, 4)
+        posed = (blended[..., :3] * self.rest[None, :, None, :]).sum(-1) + blended[..., 3]
+        return posed, mats.index_select(1, self.seg_joints), gpos
+
+    def transforms(self, local_rot: Tensor, local_trans: Tensor) -> tuple[Tensor, Tensor]:
+        """Skinning transforms ``(F, J, 3, 4)`` (rest world -> posed world) and joint positions ``(F, J, 3)`` from
+        local rotation matrices ``(F, J, 3, 3)`` and translations ``(F, J, 3)``."""
         g_rot: list[Tensor] = []
         g_pos: list[Tensor] = []
         for j, p in enumerate(self.parents):
@@ -56,11 +69,32 @@ class PointPoser:
         gpos = torch.stack(g_pos, dim=1)  # (F, J, 3)
         r = grot @ self.rest_rot_t  # (F, J, 3, 3)
         t = gpos - (r @ self.rest_pos[..., None])[..., 0]
-        mats = torch.cat([r, t[..., None]], dim=-1)  # (F, J, 3, 4)
-        f_n, j_n = mats.shape[:2]
-        blended = torch.matmul(self.weights, mats.reshape(f_n, j_n, 12)).reshape(f_n, -1, 3, 4)  # (F, P, 3, 4)
-        posed = (blended[..., :3] * self.rest[None, :, None, :]).sum(-1) + blended[..., 3]
-        return posed, mats.index_select(1, self.seg_joints), gpos
+        return torch.cat([r, t[..., None]], dim=-1), gpos
+
+    def plan(self, frames: Tensor, points: Tensor, num_joints: int) -> RowPlan:
+        """What :meth:`pose_rows` needs to pose the (frame, point) rows ``frames (N,)``, ``points (N,)`` (indices
+        into the frames posed and :attr:`points`) from transforms of ``num_joints`` joints."""
+        joints = self.skin_joints.index_select(0, points)  # (N, K)
+        mat_rows = (frames[:, None] * num_joints + joints).reshape(-1)
+        return RowPlan(mat_rows, self.skin_weights.index_select(0, points), self.rest.index_select(0, points))
 
 
-__all__ = ["PointPoser", "rotvec_to_matrix"]
+@dataclass
+class RowPlan:
+    """Rows of posed points: ``mat_rows (N*K,)`` rows of the flattened transforms ``(F*J, 12)`` of each row's
+    influences, their weights ``(N, K)`` and the rows' rest positions ``(N, 3)``."""
+
+    mat_rows: Tensor
+    weight: Tensor
+    rest: Tensor
+
+
+def pose_rows(plan: RowPlan, mats: Tensor) -> Tensor:
+    """Posed positions ``(N, 3)`` of the rows of ``plan`` from skinning transforms ``mats (F, J, 3, 4)``: only the
+    rows an energy reads are posed, and the gradient flows back through one gather."""
+    n, k = plan.weight.shape
+    m = mats.reshape(-1, 12).index_select(0, plan.mat_rows).reshape(n, k, 12)
+    blended = torch.bmm(plan.weight[:, None, :], m).reshape(n, 3, 4)
+    return torch.bmm(blended[..., :3], plan.rest[..., None])[..., 0] + blended[..., 3]
+
+__all__ = ["PointPoser", "RowPlan", "pose_rows", "rotvec_to_matrix"]

@@ -342,3 +342,22 @@ def test_planted_feet_stay_where_the_input_had_them(shared_data: Path) -> None:
 
     held, loose = planted_drift(CollisionParams().planted_foot_ee_weight), planted_drift(CollisionParams().end_effectors["LeftFoot"])
     assert held < 0.5 * loose, (held, loose)  # measured: 2.2 vs 7.0 mm
+
+
+def test_posing_only_the_rows_an_energy_reads_matches_posing_every_point(bulky: Character) -> None:
+    """``pose_rows`` (sparse influences, only the (frame, point) rows asked for, repeats allowed) gives the
+    positions the dense poser gives for those rows."""
+    from retarget_core.refine.point_poser import PointPoser, pose_rows
+
+    motion, _, _ = _hand_in_belly(bulky, 0.02, 4)
+    ctx = _context(bulky, motion)
+    points = torch.arange(bulky.num_vertices)[::5]
+    poser = PointPoser(bulky, points, ctx.parts.joints)
+    local = roma.unitquat_to_rotmat(motion.rotations.float())
+    posed, _, _ = poser(local, motion.translations.float())
+    mats, _ = poser.transforms(local, motion.translations.float())
+    frames = torch.tensor([0, 3, 1, 3])
+    rows = torch.tensor([5, 0, len(points) - 1, 5])
+    got = pose_rows(poser.plan(frames, rows, mats.shape[1]), mats)
+    assert torch.allclose(got, posed[frames, rows], atol=1e-5)
+    assert not torch.allclose(got[0], got[1])  # different rows, different places
