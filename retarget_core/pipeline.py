@@ -36,13 +36,8 @@ from retarget_core.placement import place_on_floor, planted_frames, stand_on_own
 from retarget_core.refine import RefineContext, refinement_stages, resolve_device
 from retarget_core.resample import resample, select_frames
 from retarget_core.retargeted import Prepared, Retargeted
+from retarget_core.stages import PREPARE_ORDER, progress_weight
 
-# Share of the job's time each stage takes, for the progress fraction (measured on a 300-frame clip).
-STAGE_WEIGHTS: dict[str, float] = {
-    "read": 0.08, "copy": 0.04, "contacts": 0.12, "body": 0.06,
-    "recurrent": 0.05, "eso": 0.1, "collisions": 0.2, "foot_lock": 0.03,
-    "metrics": 0.22, "write": 0.1,
-}  # fmt: skip
 PIPELINE_THREADS = 1
 """Torch intra-op threads while a job runs: the stages are many small tensor operations, for which OpenMP's
 parallel regions cost more than they save on a small shared CPU (benchmarks/results/metrics_benchmark*.json)."""
@@ -65,12 +60,12 @@ class StageClock:
         start = time.perf_counter()
         yield
         self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - start, 4)
-        self.done = min(1.0, self.done + STAGE_WEIGHTS.get(name, 0.0))
+        self.done = min(1.0, self.done + progress_weight(name))
         self._tell(name, self.done)
 
     def within(self, name: str) -> Any:
         """A callback ``(fraction of stage name done) -> None`` for long stages."""
-        return lambda fraction: self._tell(name, min(1.0, self.done + STAGE_WEIGHTS.get(name, 0.0) * fraction))
+        return lambda fraction: self._tell(name, min(1.0, self.done + progress_weight(name) * fraction))
 
     def _tell(self, name: str, fraction: float) -> None:
         if self.progress is not None:
@@ -189,7 +184,7 @@ def refine(prepared: Prepared, clock: StageClock | None = None, options: Retarge
     if ctx.device.type != opts.device.split(":")[0] and opts.device != "auto":
         warnings.append(f"device {opts.device!r} is not available here: the job ran on the CPU")
     motion = prepared.before
-    run, skipped, reports = ["read", "copy", "contacts", "body"], [], {}
+    run, skipped, reports = list(PREPARE_ORDER), [], {}
     for info, stage in refinement_stages():
         if not opts.stages.enabled(info.name):
             continue

@@ -1,8 +1,10 @@
-"""The pipeline's switchable stages, in order: the one list that options, the pipeline, ``/v1/info`` and the
-front end read. Light on purpose (no torch): the API imports it.
+"""The pipeline's steps and switchable stages, in order: the one registry that the pipeline, its progress, the
+job options, ``/v1/info``, the upload form, ``retarget eval`` and the docs read. Light on purpose (no torch): the
+API imports it.
 
-``contacts`` runs before the refinement stages (it finds what they must keep); the others live in
-:mod:`retarget_core.refine`, one module each, and run in this order on the copy baseline.
+``contacts`` runs inside :func:`retarget_core.pipeline.prepare` (it finds what the refinement stages must keep);
+the refinement stages live in :mod:`retarget_core.refine`, one module each, and run in this order on the copy
+baseline. To add a stage: write its module with ``run(context, motion) -> StageOutcome`` and add its entry here.
 """
 
 from __future__ import annotations
@@ -12,33 +14,49 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class StageInfo:
-    """name: the option key; label and description: what the front end shows; default: on unless switched off;
-    available: implemented in this version (unavailable stages are skipped with a note)."""
+    """One switchable stage. name: the option key; label and description: what the front end shows; module: the
+    module whose ``run`` implements a refinement stage (None: run by the pipeline itself); default: on unless
+    switched off; weight: its share of a job's time, for the progress fraction; options: the job options
+    (:class:`retarget_core.options.RetargetOptions` fields) it reads besides its switch; available: implemented
+    in this version (unavailable stages are skipped with a note)."""
 
     name: str
     label: str
     description: str
+    module: str | None
+    weight: float
     default: bool = True
+    options: tuple[str, ...] = ()
     available: bool = True
 
 
 STAGES: tuple[StageInfo, ...] = (
-    StageInfo("contacts", "Contacts", "hand self-contacts and planted feet found on the source, carried to the target"),
-    # recurrent and eso are on by default: before collisions and foot lock they keep the hands on the body where
-    # the chain without them loses contacts (held-out split, 55 cases, 100 frames: worst contact preservation
-    # 0.94 vs 0.86, mean 0.999 vs 0.989; other figures equal; about 20 ms/frame more; docs/model-recurrent.md).
-    StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network"),
-    StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states"),
-    # learned_collisions: paper 2's per-limb model (docs/model-collisions.md); off by default: before the
-    # optimisation resolver it lowers penetration (held-out, with foot lock: pen %v 0.141 vs 0.183) but loses
-    # contacts (worst preservation 0.83 vs 0.86) and raises the end-effector error (2.49 vs 2.35 cm).
+    StageInfo("contacts", "Contacts", "hand self-contacts and planted feet found on the source, carried to the target",
+              None, 0.12),
+    StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network",
+              "retarget_core.refine.recurrent", 0.05),
+    StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states",
+              "retarget_core.refine.eso", 0.1, options=("eso_iterations",)),
     StageInfo("learned_collisions", "Learned collision resolver", "paper 2's per-limb network turns limbs out of the body",
-              default=False),
-    StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept"),
-    StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK"),
-)
+              "retarget_core.refine.collision_model", 0.05, default=False),
+    StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept",
+              "retarget_core.refine.collisions", 0.2),
+    StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
+              "retarget_core.refine.foot_lock", 0.03),
+)  # fmt: skip
+"""Why each default stands: docs/results.md (the held-out evaluation of the default chain and its variants)."""
+
+PREPARE_STEPS: dict[str, float] = {"read": 0.08, "copy": 0.04, "body": 0.06}
+"""The pipeline's fixed steps before the refinement stages, with their share of a job's time."""
+
+PREPARE_ORDER: tuple[str, ...] = ("read", "copy", "contacts", "body")
+"""What :func:`retarget_core.pipeline.prepare` runs, in order (``contacts`` is a switchable stage)."""
+
+FINISH_STEPS: dict[str, float] = {"metrics": 0.22, "write": 0.1}
+"""The fixed steps after the refinement stages, with their share of a job's time."""
+
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
-REFINEMENT_STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES if s.name != "contacts")
+REFINEMENT_STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES if s.module is not None)
 
 
 def stage_info(name: str) -> StageInfo:
@@ -49,4 +67,23 @@ def stage_info(name: str) -> StageInfo:
     raise KeyError(name)
 
 
-__all__ = ["REFINEMENT_STAGE_NAMES", "STAGES", "STAGE_NAMES", "StageInfo", "stage_info"]
+def progress_weight(name: str) -> float:
+    """The share of a job's time that step or stage ``name`` takes (0 for an unknown name)."""
+    if name in PREPARE_STEPS:
+        return PREPARE_STEPS[name]
+    if name in FINISH_STEPS:
+        return FINISH_STEPS[name]
+    return stage_info(name).weight if name in STAGE_NAMES else 0.0
+
+
+__all__ = [
+    "FINISH_STEPS",
+    "PREPARE_ORDER",
+    "PREPARE_STEPS",
+    "REFINEMENT_STAGE_NAMES",
+    "STAGES",
+    "STAGE_NAMES",
+    "StageInfo",
+    "progress_weight",
+    "stage_info",
+]

@@ -2,8 +2,8 @@
 registered here in the pipeline's order (:data:`retarget_core.stages.STAGES`); the pipeline runs
 :func:`refinement_stages` and nothing else knows the order.
 
-To add a stage: write ``refine/<name>.py`` with ``run(context, motion) -> StageOutcome``, add its
-:class:`~retarget_core.stages.StageInfo` to ``stages.STAGES`` and its loader to :data:`_LOADERS`.
+To add a stage: write ``refine/<name>.py`` with ``run(context, motion) -> StageOutcome`` and add its
+:class:`~retarget_core.stages.StageInfo` (which names the module) to ``stages.STAGES``.
 """
 
 from __future__ import annotations
@@ -14,19 +14,13 @@ from importlib import import_module
 from retarget_core.refine.context import RefineContext, RefineStage, StageOutcome, resolve_device
 from retarget_core.stages import REFINEMENT_STAGE_NAMES, StageInfo, stage_info
 
-# Stage name -> module whose ``run`` implements it (imported when first used).
-_MODULES: dict[str, str] = {
-    "recurrent": "retarget_core.refine.recurrent",
-    "eso": "retarget_core.refine.eso",
-    "learned_collisions": "retarget_core.refine.collision_model",
-    "collisions": "retarget_core.refine.collisions",
-    "foot_lock": "retarget_core.refine.foot_lock",
-}
-
 
 def load_stage(name: str) -> RefineStage:
     """The ``run`` function of refinement stage ``name``."""
-    fn: Callable[..., StageOutcome] = import_module(_MODULES[name]).run
+    module = stage_info(name).module
+    if module is None:
+        raise KeyError(f"{name} is not a refinement stage")
+    fn: Callable[..., StageOutcome] = import_module(module).run
     return fn
 
 

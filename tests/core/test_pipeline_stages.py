@@ -28,6 +28,25 @@ def test_stage_switches_follow_the_one_stage_list() -> None:
     assert {s.name: s.default for s in STAGES} == RetargetOptions().stages.model_dump()
 
 
+def test_every_stage_is_registered_once_with_what_the_pipeline_needs() -> None:
+    """The registry is the one list: each refinement stage names a module with ``run``, each stage a progress
+    weight and options that exist; the eval's default chain and the progress of a default job follow it."""
+    from importlib import import_module
+
+    from retarget_core.evaluation import METHODS
+    from retarget_core.stages import FINISH_STEPS, PREPARE_ORDER, PREPARE_STEPS, progress_weight
+
+    for info in STAGES:
+        assert info.weight > 0, info.name
+        assert set(info.options) <= set(RetargetOptions.model_fields), info.name
+        if info.module is not None:
+            assert callable(import_module(info.module).run), info.name
+    assert set(PREPARE_ORDER) == set(PREPARE_STEPS) | {s.name for s in STAGES if s.module is None}
+    assert set(METHODS["full"]) == {s.name for s in STAGES if s.module is not None and s.default}
+    default_job = [*PREPARE_ORDER, *METHODS["full"], *FINISH_STEPS]
+    assert abs(sum(progress_weight(n) for n in default_job) - 1.0) < 1e-9
+
+
 def test_device_option_is_validated_and_falls_back() -> None:
     with pytest.raises(ValueError):
         RetargetOptions(device="tpu")
