@@ -29,6 +29,7 @@ from retarget_core.contacts.correspondence import (
 from retarget_core.contacts.foot_contact import FootContacts, detect_foot_contacts
 from retarget_core.contacts.self_contact import SelfContacts, detect_self_contacts
 from retarget_core.metrics.compute import ClipMeasures, compute_metrics, summarize
+from retarget_core.metrics.frames import Reuse
 from retarget_core.metrics.report import (
     ContactVertexPairs,
     MetricsReport,
@@ -181,6 +182,7 @@ def measure_job(
             after_metrics, after_measures = compute_metrics(
                 target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
                 reference=ref_measures, source_feet=found.feet, source_hand_distances=hands,
+                reuse=Reuse(before, before_measures),
             )  # fmt: skip
         timings["metrics"] = time.perf_counter() - t
         t = time.perf_counter()

@@ -9,7 +9,7 @@ see docs/metrics.md for every field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -23,6 +23,8 @@ from retarget_core.contacts.foot_contact import FootContactParams, FootContacts,
 from retarget_core.contacts.hand_distance import (
     HandDistanceParams,
     HandPartDistances,
+    HandPartGeometry,
+    _memberships,
     hand_part_distances,
     hand_part_geometry,
 )
@@ -34,6 +36,7 @@ from retarget_core.energy.sdf import (
     segment_matrices,
     vertex_depths,
 )
+from retarget_core.metrics.frames import Reuse, frame_chunks, hand_part_candidates, unchanged_frames
 from retarget_core.metrics.report import MethodMetrics, MetricSummary, PenetratingVertices, Series, measure
 from retarget_core.motion import Motion
 
@@ -118,10 +121,15 @@ def measure_clip(
     params: MetricParams | None = None,
     foot_params: FootContactParams | None = None,
     source_hand_distances: HandPartDistances | None = None,
+    reuse: Reuse | None = None,
+    cull_hands: bool = True,
 ) -> ClipMeasures:
     """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame.
     ``source_hand_distances``: the source's hand-to-part distances (``SelfContacts.distances``), for the false
-    contacts (docs/metrics.md "Hand contacts")."""
+    contacts (docs/metrics.md "Hand contacts"). ``reuse``: measures of another motion on this character (same
+    ground, contacts and source): frames posed exactly as there are copied, not measured. ``cull_hands``: compute
+    exact hand-to-part distances only where the penetration queries found a hand near a part (False: on every
+    frame, the reference the culled path is tested against)."""
     params = params or MetricParams()
     if motion.skeleton.num_joints != character.skeleton.num_joints:
         raise ValueError("the motion does not animate this character's skeleton")
@@ -129,41 +137,79 @@ def measure_clip(
     f_n, v_n = motion.num_frames, character.num_vertices
     names = [c for c in CANONICAL_JOINTS if c in mapping.joints]
     idx = torch.tensor([mapping.joints[c] for c in names])
-    depth = torch.zeros(f_n, v_n)
-    volume = torch.zeros(f_n)
-    limb = torch.zeros(f_n, len(LIMBS))
-    lowest = torch.zeros(f_n)
-    c_dist, c_frame = [], []
+    out = _FrameMeasures(f_n, v_n)
     hands = None
     if (contacts is not None and contacts.count) or source_hand_distances is not None:
-        hands = ContactHandMeter(character, parts, contacts, source_hand_distances)
-    area = sdf.vertex_area
+        hands = ContactHandMeter(character, parts, contacts, source_hand_distances, f_n)
+    same = unchanged_frames(motion, reuse.motion if reuse is not None else None)
     with torch.no_grad():
         grot, gpos = motion.global_transforms()
-        for s in range(0, f_n, params.frame_chunk):
-            e = min(f_n, s + params.frame_chunk)
-            verts = character.pose_vertices(grot[s:e], gpos[s:e])
-            mats = segment_matrices(character, parts, grot[s:e], gpos[s:e])
-            samples = sample_pairs(sdf, verts, mats)
-            d = vertex_depths(sdf, samples, e - s)
-            depth[s:e] = d
-            volume[s:e] = (d * area).sum(-1)
-            limb[s:e] = limb_distances(parts, distance_matrix(sdf, samples, e - s))
-            lowest[s:e] = verts[..., 1].amin(-1)
-            if contacts is not None and contacts.count:
-                keep = (contacts.frame >= s) & (contacts.frame < e)
-                fr = contacts.frame[keep] - s
-                c_dist.append((verts[fr, contacts.i[keep]] - verts[fr, contacts.j[keep]]).norm(dim=-1))
-                c_frame.append(contacts.frame[keep])
-            if hands is not None:
-                hands.measure(verts, s)
+        if reuse is not None and bool(same.any()):
+            out.copy(torch.nonzero(same).flatten(), reuse.measures, ground, hands)  # type: ignore[arg-type]
+        for frames in frame_chunks(torch.nonzero(~same).flatten(), params.frame_chunk):
+            out.measure(character, sdf, grot[frames], gpos[frames], frames, hands, cull_hands)
         _, rest_pos = character.skeleton.rest_global()
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
+        c_dist, c_frame = contact_pair_distances(character, contacts, grot, gpos, params.frame_chunk)
     return ClipMeasures(
-        motion.name, motion.fps, character.height, v_n, names, gpos[:, idx], depth, volume, limb, lowest - ground,
-        torch.cat(c_dist) if c_dist else torch.zeros(0), torch.cat(c_frame) if c_frame else torch.zeros(0, dtype=torch.long),
-        feet, vertex_part_clusters(parts), hands.result() if hands is not None else None,
+        motion.name, motion.fps, character.height, v_n, names, gpos[:, idx], out.depth, out.volume, out.limb,
+        out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
+        hands.result() if hands is not None else None,
     )  # fmt: skip
+
+
+class _FrameMeasures:
+    """The per-frame arrays of :class:`ClipMeasures`, filled chunk by chunk of frames."""
+
+    def __init__(self, f_n: int, v_n: int) -> None:
+        self.depth = torch.zeros(f_n, v_n)
+        self.volume = torch.zeros(f_n)
+        self.limb = torch.zeros(f_n, len(LIMBS))
+        self.lowest = torch.zeros(f_n)
+
+    def measure(self, character: Character, sdf: PartSDF, grot: Tensor, gpos: Tensor, frames: Tensor,
+                hands: ContactHandMeter | None, cull_hands: bool) -> None:  # fmt: skip
+        """Pose and measure the frames ``frames (C,)`` whose world transforms are ``grot (C, J, 4)``, ``gpos``."""
+        c = len(frames)
+        verts = character.pose_vertices(grot, gpos)
+        mats = segment_matrices(character, sdf.parts, grot, gpos)
+        samples = sample_pairs(sdf, verts, mats)
+        d = vertex_depths(sdf, samples, c)
+        self.depth[frames] = d
+        self.volume[frames] = (d * sdf.vertex_area).sum(-1)
+        self.limb[frames] = limb_distances(sdf.parts, distance_matrix(sdf, samples, c))
+        self.lowest[frames] = verts[..., 1].amin(-1)
+        if hands is not None:
+            cand = hand_part_candidates(sdf.parts, samples, c) if cull_hands else None
+            hands.measure(verts, frames, cand)
+
+    def copy(self, frames: Tensor, other: ClipMeasures, ground: float, hands: ContactHandMeter | None) -> None:
+        """Copy the frames ``frames (C,)`` from ``other`` (a motion posed the same there, measured with the same
+        ``ground``)."""
+        self.depth[frames] = other.vertex_depth[frames]
+        self.volume[frames] = other.penetration_volume[frames]
+        self.limb[frames] = other.limb_distance[frames]
+        self.lowest[frames] = other.lowest_vertex[frames] + ground
+        if hands is not None:
+            if other.contact_hands is None:
+                raise ValueError("the reused measures have no hand-to-part distances")
+            hands.copy(frames, other.contact_hands)
+
+
+def contact_pair_distances(character: Character, contacts: ContactConstraints | None, grot: Tensor, gpos: Tensor,
+                           chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Distance ``(M,)`` of each contact constraint's vertex pair and its frame ``(M,)``, ordered by chunk of
+    ``chunk`` frames (the order of the per-chunk measures before)."""
+    if contacts is None or not contacts.count:
+        return torch.zeros(0), torch.zeros(0, dtype=torch.long)
+    order = torch.argsort(torch.div(contacts.frame, chunk, rounding_mode="floor"), stable=True)
+    frame, i, j = contacts.frame[order], contacts.i[order], contacts.j[order]
+    used, inv = torch.unique(torch.cat([i, j]), return_inverse=True)
+    pts = character.pose_vertex_subset(used, grot, gpos)  # (F, U, 3)
+    flat = pts.reshape(-1, 3)
+    a = flat.index_select(0, frame * len(used) + inv[: len(i)])
+    b = flat.index_select(0, frame * len(used) + inv[len(i) :])
+    return (a - b).norm(dim=-1), frame
 
 
 # --- penetration per body part (issue 8, part 2) -------------------------------------------------------------
@@ -222,6 +268,8 @@ class ContactHandMeasures:
     max_distance: float
     far_pairs: int | None = None
     false_pairs: int = 0
+    frame_far: Tensor | None = None  # (F,) far pairs per frame
+    frame_false: Tensor | None = None  # (F,) false contacts per frame
 
 
 def contact_hand_targets(contacts: ContactConstraints, hands: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor]:
@@ -245,10 +293,11 @@ def contact_hand_targets(contacts: ContactConstraints, hands: tuple[str, ...]) -
 
 
 class ContactHandMeter:
-    """Measures, chunk by chunk of posed frames, the hand-to-part distance of each source contact."""
+    """Measures, chunk by chunk of posed frames, the hand-to-part distance of each source contact, and per frame
+    the source's far (hand, part) pairs and how many of them are false contacts here."""
 
     def __init__(self, character: Character, parts: BodyParts, contacts: ContactConstraints | None,
-                 source: HandPartDistances | None = None) -> None:  # fmt: skip
+                 source: HandPartDistances | None = None, frames: int = 0) -> None:  # fmt: skip
         self.geometry = hand_part_geometry(parts, character.vertices, character.height)
         self.character, self.parts = character, parts
         if contacts is not None and contacts.count:
@@ -257,33 +306,74 @@ class ContactHandMeter:
             self.frame = self.hand = self.part = torch.zeros(0, dtype=torch.long)
         self.distance = torch.full((len(self.frame),), float("inf"))
         self.max_distance = HandDistanceParams().max_distance_m * character.height / REFERENCE_HEIGHT_M
-        self.source = source
-        self.far_pairs: int | None = None if source is None else 0
-        self.false_pairs = 0
+        self.source = source if source is not None and source.num_frames >= frames else None
+        self.frame_far = torch.zeros(frames, dtype=torch.long)
+        self.frame_false = torch.zeros(frames, dtype=torch.long)
         self.false_m = FALSE_CONTACT_M * character.height / REFERENCE_HEIGHT_M
+        self._by_part: dict[int, HandPartGeometry] = {}
 
-    def measure(self, verts: Tensor, start: int) -> None:
-        """``verts (C, V, 3)``: the posed frames ``start .. start + C``."""
-        stop = start + verts.shape[0]
-        sel = (self.frame >= start) & (self.frame < stop)
-        src = self.source
-        if src is not None and src.num_frames >= stop:
-            d = hand_part_distances(self.character, self.parts, verts, geometry=self.geometry)
-            far = torch.isinf(src.distance[start:stop]) & src.measured[None] & d.measured[None]
-            self.far_pairs = (self.far_pairs or 0) + int(far.sum())
-            self.false_pairs += int((far & (d.distance < self.false_m)).sum())
-            self.distance[sel] = d.distance[self.frame[sel] - start, self.hand[sel], self.part[sel]].float()
-        elif bool(sel.any()):
-            frames = self.frame[sel].unique()
-            d = hand_part_distances(self.character, self.parts, verts[frames - start], geometry=self.geometry)
-            row = torch.searchsorted(frames, self.frame[sel])
-            self.distance[sel] = d.distance[row, self.hand[sel], self.part[sel]].float()
+    def measure(self, verts: Tensor, frames: Tensor, candidates: Tensor | None = None) -> None:
+        """``verts (C, V, 3)``: the posed frames ``frames (C,)`` (increasing). ``candidates (C, 2, P)``: the
+        (hand, part) pairs that may be closer than the false-contact distance (:func:`hand_part_candidates`);
+        None: every far pair is measured exactly."""
+        sel = torch.isin(self.frame, frames)
+        row = torch.searchsorted(frames, self.frame[sel])
+        need = torch.zeros(len(frames), *self.geometry.measured.shape, dtype=torch.bool)
+        need[row, self.hand[sel], self.part[sel]] = True  # the source contacts' pairs
+        far = None
+        if self.source is not None:
+            far = torch.isinf(self.source.distance[frames]) & self.source.measured[None] & self.geometry.measured[None]
+            self.frame_far[frames] = far.flatten(1).sum(1)
+            need |= far if candidates is None else far & candidates
+        dist = self._distances(verts, need)
+        if far is not None:
+            self.frame_false[frames] = (far & (dist < self.false_m)).flatten(1).sum(1)
+        self.distance[sel] = dist[row, self.hand[sel], self.part[sel]].float()
+
+    def _distances(self, verts: Tensor, need: Tensor) -> Tensor:
+        """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` (inf elsewhere), part by part on
+        the frames that need it, each query holding that part's triangles only."""
+        dist = torch.full(need.shape, float("inf"), dtype=torch.float64)
+        for p in torch.nonzero(need.any(dim=(0, 1))).flatten().tolist():
+            rows = torch.nonzero(need[:, :, p].any(1)).flatten()
+            geom = self._part_geometry(p)
+            dist[rows, :, p] = hand_part_distances(self.character, self.parts, verts[rows], geometry=geom).distance[:, :, p]
+        return dist
+
+    def _part_geometry(self, p: int) -> HandPartGeometry:
+        """The hand-to-part geometry restricted to part ``p``'s triangle chunks (the same distances for ``p``;
+        the per-frame bounds of the other parts' triangles are not computed)."""
+        if p not in self._by_part:
+            g = self.geometry
+            keep = torch.nonzero(g.tri_chunk_part == p).flatten()
+            vertices = g.tri_chunk_vertices.index_select(0, keep)
+            measured = torch.zeros_like(g.measured)
+            measured[:, p] = g.measured[:, p]
+            self._by_part[p] = replace(
+                g, tri_chunks=g.tri_chunks.index_select(0, keep), tri_chunk_part=g.tri_chunk_part.index_select(0, keep),
+                tri_chunk_vertices=vertices, tri_chunk_members=_memberships(vertices), measured=measured,
+            )  # fmt: skip
+        return self._by_part[p]
+
+    def copy(self, frames: Tensor, other: ContactHandMeasures) -> None:
+        """Take the results of ``frames (C,)`` from ``other``, measured on a motion posed the same there."""
+        sel = torch.isin(self.frame, frames)
+        same = torch.isin(other.frame, frames)
+        if int(sel.sum()) != int(same.sum()):
+            raise ValueError("the reused measures have other source contacts on the unchanged frames")
+        self.distance[sel] = other.distance[same]
+        if other.frame_far is not None and other.frame_false is not None:
+            self.frame_far[frames] = other.frame_far[frames]
+            self.frame_false[frames] = other.frame_false[frames]
 
     def result(self) -> ContactHandMeasures:
         g = self.geometry
         dist = self.distance.clamp_max(self.max_distance)
+        if self.source is None:
+            return ContactHandMeasures(g.hands, g.parts, self.frame, self.hand, self.part, dist, self.max_distance)
         return ContactHandMeasures(g.hands, g.parts, self.frame, self.hand, self.part, dist, self.max_distance,
-                                   self.far_pairs, self.false_pairs)  # fmt: skip
+                                   int(self.frame_far.sum()), int(self.frame_false.sum()), self.frame_far,
+                                   self.frame_false)  # fmt: skip
 
 
 def contact_hand_summary(m: ClipMeasures) -> dict[str, Any]:
@@ -523,12 +613,13 @@ def compute_metrics(
     source_feet: FootContacts | None = None,
     params: MetricParams | None = None,
     source_hand_distances: HandPartDistances | None = None,
+    reuse: Reuse | None = None,
 ) -> tuple[MethodMetrics, ClipMeasures]:
     """:func:`measure_clip` then :func:`summarize`; returns the metrics and the measures (reuse them as the
     ``original`` of a later result). ``source_hand_distances`` (``SelfContacts.distances`` of the source):
-    adds the false contacts."""
+    adds the false contacts. ``reuse``: see :func:`measure_clip`."""
     measures = measure_clip(character, mapping, sdf, motion, contacts, params=params,
-                            source_hand_distances=source_hand_distances)  # fmt: skip
+                            source_hand_distances=source_hand_distances, reuse=reuse)  # fmt: skip
     return summarize(measures, original, reference, source_feet, params), measures
 
 

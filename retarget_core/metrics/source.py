@@ -76,12 +76,8 @@ def foot_vertex_heights(body: Character, parts: BodyParts, motion: Motion, chunk
     else:
         idx = torch.arange(body.num_vertices)
     grot, gpos = motion.global_transforms()
-    out = torch.zeros(motion.num_frames)
-    with torch.no_grad():
-        for s in range(0, motion.num_frames, chunk):
-            e = min(motion.num_frames, s + chunk)
-            out[s:e] = body.pose_vertices(grot[s:e], gpos[s:e])[:, idx, 1].amin(-1)
-    return out
+    with torch.no_grad():  # only the feet are posed
+        return body.pose_vertex_subset(idx, grot, gpos, chunk)[..., 1].amin(-1)
 
 
 def _percent(mask: Tensor) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -534,3 +535,50 @@ def test_unchanged_after_reuses_the_before_measures() -> None:
     once = build_metrics(result)
     again = build_metrics(replace(result, after=replace(result.after)))
     assert once["after"] == again["after"] and once["improvement"] == again["improvement"]
+
+
+def _perturbed(motion: Motion, frames: slice, joint: int, angle: float) -> Motion:
+    """``motion`` with joint ``joint`` turned by ``angle`` (radians, about x) on ``frames`` only."""
+    from retarget_core import rotations as rot
+
+    q = torch.tensor([math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0])
+    r = motion.rotations.clone()
+    r[frames, joint] = rot.mul(r[frames, joint], q.expand_as(r[frames, joint]))
+    return Motion(motion.skeleton, motion.fps, r, motion.translations.clone(), motion.name)
+
+
+def test_fast_metrics_equal_the_full_measurement(shared_data: Path) -> None:
+    """The metrics path (hand distances only where the penetration queries found a hand near a part, "after"
+    measured only on the frames it changed) reads as measuring every frame exactly: a 48-frame two-hand grip."""
+    from retarget_core.jobs import JobInputs
+    from retarget_core.metrics.frames import Reuse
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import prepare
+
+    inputs = JobInputs(shared_data / "motions" / "cmu" / "002_08.bvh", shared_data / "characters" / "mh_male_bulky.glb",
+                       options=RetargetOptions(fps=30.0, frame_end=190))  # fmt: skip
+    p = prepare(inputs, max_frames=48)
+    tgt, tmap, sdf = p.target.character, p.target.mapping, p.assets.sdf
+    arm = tmap.joints["LeftForeArm"]
+    after = _perturbed(p.before, slice(10, 30), arm, 0.6)
+    hands = p.contacts.self_contacts.distances
+    kw = {"contacts": p.constraints, "source_hand_distances": hands}
+    full_b = measure_clip(tgt, tmap, sdf, p.before, cull_hands=False, **kw)
+    full_a = measure_clip(tgt, tmap, sdf, after, cull_hands=False, **kw)
+    fast_b = measure_clip(tgt, tmap, sdf, p.before, **kw)
+    fast_a = measure_clip(tgt, tmap, sdf, after, reuse=Reuse(p.before, fast_b), **kw)
+    assert full_b.contact_hands is not None and full_b.contact_hands.far_pairs
+    assert len(full_b.contact_hands.frame) > 0, "the clip must have source hand contacts"
+    for full, fast in ((full_b, fast_b), (full_a, fast_a)):
+        for name in ("vertex_depth", "penetration_volume", "limb_distance", "lowest_vertex", "contact_distance"):
+            torch.testing.assert_close(getattr(fast, name), getattr(full, name), atol=1e-6, rtol=1e-5)
+        assert fast.contact_hands is not None and full.contact_hands is not None
+        torch.testing.assert_close(fast.contact_hands.distance, full.contact_hands.distance, atol=1e-6, rtol=1e-5)
+        assert fast.contact_hands.far_pairs == full.contact_hands.far_pairs
+        assert fast.contact_hands.false_pairs == full.contact_hands.false_pairs
+        one = summarize(fast, full_b, source_feet=p.contacts.feet).model_dump()
+        other = summarize(full, full_b, source_feet=p.contacts.feet).model_dump()
+        assert json.dumps(one, sort_keys=True) == json.dumps(other, sort_keys=True)
+    assert not torch.equal(full_a.vertex_depth[10:30], full_b.vertex_depth[10:30]) or not torch.equal(
+        full_a.lowest_vertex, full_b.lowest_vertex
+    ), "the perturbation must change what is measured"
