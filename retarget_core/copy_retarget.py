@@ -11,8 +11,10 @@ spine use full frames (bone direction plus the body's left axis) so their twist 
 aligned on the floor instead: both rest poses stand flat on it, so ``A_c`` turns only about the vertical, taking
 the horizontal part of ``d_t`` to that of ``d_s``. A flat source foot then stays flat on the target whatever the
 slope of each rig's ankle-to-toe bone (the shortest arc would tilt a foot whose ankle sits higher over a shorter
-foot toes-up by the difference of the slopes: 4 degrees, a toe joint 1 cm up, from an average to a heavy body). Joints of the
-target that are not canonical keep their rest local rotation. This is what a production rotation retargeter
+foot toes-up by the difference of the slopes: 4 degrees, a toe joint 1 cm up, from an average to a heavy body).
+Mapped fingers and toes (``mapping.extras``) follow the same formula, each aligned by the previous segment's (or the
+hand's) alignment followed by the shortest arc of its bone; twist bones take their share of their limb's twist
+(:mod:`retarget_core.extras`). Every other joint of the target keeps its rest local rotation. This is what a production rotation retargeter
 (Unreal IK Retargeter's FK chains, Mixamo) gives without IK: the "before" of every comparison.
 """
 
@@ -23,6 +25,7 @@ import math
 import torch
 from torch import Tensor
 
+from retarget_core import extras
 from retarget_core import rotations as rot
 from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, JointMapping
 from retarget_core.kinematics import forward_kinematics
@@ -153,12 +156,19 @@ def copy_retarget(
         sj, tj = source_map.joints[name], target_map.joints[name]
         delta = rot.mul(s_rot[:, sj], rot.inv(s_rest_rot[sj]))
         desired[tj] = rot.normalize(rot.mul(rot.mul(delta, a), t_rest_rot[tj]))
+    twists: dict[int, extras.TwistDriver] = {}
+    if target_map.extras:  # fingers and toes as the body (rest-aligned), twist bones from their limbs
+        aligned = extras.digit_alignment(source.skeleton, source_map, target, target_map, align)
+        desired.update(extras.digit_world_rotations(s_rot, s_rest_rot, t_rest_rot, aligned))
+        twists = extras.twist_drivers(target, target_map)
 
     local_r = target.rest_rotations.unsqueeze(0).repeat(frames, 1, 1)
     local_t = target.rest_translations.unsqueeze(0).repeat(frames, 1, 1)
     world: list[Tensor] = []
     for j, p in enumerate(target.parents):
         parent_world = world[p] if p >= 0 else rot.identity(frames)
+        if j in twists:
+            desired[j] = twists[j].world(world, local_r, desired, target.rest_rotations)
         if j in desired:
             world.append(desired[j])
             local_r[:, j] = rot.normalize(rot.mul(rot.inv(parent_world), desired[j]))

@@ -42,7 +42,9 @@ class LoadedMotion:
     notes: list[str] = field(default_factory=list)
 
 
-def _read_any(path: Path, fps: float | None) -> tuple[FileFormat, Character | None, list[Motion], list[str]]:
+def _read_any(
+    path: Path, fps: float | None
+) -> tuple[FileFormat, Character | None, list[Motion], list[str], dict[str, str]]:
     fmt = detect_format(path)
     if fmt == "bvh":
         from retarget_core.io.bvh import BvhNote, read_bvh
@@ -50,7 +52,7 @@ def _read_any(path: Path, fps: float | None) -> tuple[FileFormat, Character | No
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", BvhNote)
             motion = read_bvh(path)
-        return fmt, None, [motion], [str(w.message) for w in caught if issubclass(w.category, BvhNote)]
+        return fmt, None, [motion], [str(w.message) for w in caught if issubclass(w.category, BvhNote)], {}
     if fmt == "fbx":
         from retarget_core.io.fbx import read_fbx
 
@@ -59,7 +61,8 @@ def _read_any(path: Path, fps: float | None) -> tuple[FileFormat, Character | No
         from retarget_core.io.gltf_read import read_gltf
 
         contents = read_gltf(path, fps=fps)
-    return fmt, contents.character, list(contents.motions), list(contents.notes)
+    humanoid = dict(getattr(contents, "humanoid", {}))  # the VRM humanoid bone map (glTF only)
+    return fmt, contents.character, list(contents.motions), list(contents.notes), humanoid
 
 
 def _pick_clip(motions: list[Motion], clip: str | None, label: str) -> Motion:
@@ -76,10 +79,12 @@ def _pick_clip(motions: list[Motion], clip: str | None, label: str) -> Motion:
     raise InvalidFileError(f"no animation named {clip!r}; the file has {names}", label)
 
 
-def _map(label: str, skeleton: Skeleton, override: dict[str, str] | None) -> JointMapping:
+def _map(
+    label: str, skeleton: Skeleton, override: dict[str, str] | None, vrm: dict[str, str] | None = None
+) -> JointMapping:
     from retarget_core.mapping import map_joints, require_complete
 
-    mapping = map_joints(skeleton, override)
+    mapping = map_joints(skeleton, override, vrm=vrm)
     require_complete(mapping, label)
     return mapping
 
@@ -96,14 +101,14 @@ def load_motion(
 
     ``fps`` is the rate glTF/FBX animations are sampled at (BVH keeps its own; resample afterwards)."""
     path = Path(path)
-    fmt, character, motions, notes = _read_any(path, fps)
+    fmt, character, motions, notes, vrm = _read_any(path, fps)
     motion = _pick_clip(motions, clip, str(path))
-    mapping = _map(f"motion {path.name}", motion.skeleton, joint_map_override)
+    mapping = _map(f"motion {path.name}", motion.skeleton, joint_map_override, vrm)
     normalized, report = normalize_motion(motion, mapping, unit)
     source_character = None
     if character is not None:
         try:
-            char_map = _map(f"character in {path.name}", character.skeleton, joint_map_override)
+            char_map = _map(f"character in {path.name}", character.skeleton, joint_map_override, vrm)
             body, body_report = normalize_character(character, char_map)
             source_character = LoadedCharacter(body, char_map, body_report, fmt, body_report.notes)
         except RetargetError as exc:
@@ -128,13 +133,13 @@ def load_character(
             character = load_preset(label[len(BUILTIN_PREFIX) :])
         except ValueError as exc:
             raise RetargetError(str(exc)) from None
-        fmt, notes = "builtin", list[str]()
+        fmt, notes, vrm = "builtin", list[str](), dict[str, str]()
     else:
         path = Path(path_or_builtin)
-        fmt, maybe, _, notes = _read_any(path, None)
+        fmt, maybe, _, notes, vrm = _read_any(path, None)
         if fmt == "bvh" or maybe is None:
             raise InvalidFileError("a target character must be a skinned mesh (glTF/GLB or FBX with a skin)", label)
         character = maybe
-    mapping = _map(f"character {Path(label).name}", character.skeleton, joint_map_override)
+    mapping = _map(f"character {Path(label).name}", character.skeleton, joint_map_override, vrm)
     normalized, report = normalize_character(character, mapping, unit)
     return LoadedCharacter(normalized, mapping, report, fmt, notes + report.notes)

@@ -40,7 +40,7 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
-from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, REQUIRED_JOINTS, JointMapping
+from retarget_core.canonical import CANONICAL_JOINTS, CANONICAL_PARENT, EXTRA_JOINTS, REQUIRED_JOINTS, JointMapping
 from retarget_core.errors import InvalidFileError, MappingError
 from retarget_core.skeleton import Skeleton
 
@@ -51,6 +51,7 @@ ARM_ROLES: tuple[str, ...] = ("Shoulder", "Arm", "ForeArm", "Hand")
 LEG_ROLES: tuple[str, ...] = ("UpLeg", "Leg", "Foot")
 
 MAX_OVERRIDE_BYTES = 1024 * 1024
+SHARE_SUFFIX = ".share"  # override key suffix of a twist bone's share
 _LONG_BRANCH = 3  # a limb has at least this many usable joints (upper bone, lower bone, end)
 _CAMEL = re.compile(r"[A-Z]+(?=[A-Z][a-z])|[A-Z]?[a-z]+|[A-Z]+|\d+")
 _FORCED = 100.0  # name score of an override inside the chain matching
@@ -194,40 +195,59 @@ def load_override(path: str | Path) -> dict[str, str]:
         raise InvalidFileError(f"cannot read the joint-mapping override: {exc.strerror or exc}", str(path)) from exc
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InvalidFileError(f"the joint-mapping override is not valid JSON: {exc}", str(path)) from exc
-    if not isinstance(data, dict) or not all(isinstance(v, str) or v is None for v in data.values()):
+    if not isinstance(data, dict) or not all(_valid_value(k, v) for k, v in data.items()):
         raise InvalidFileError(
-            'the joint-mapping override must be a JSON object like {"LeftArm": "joint name"}', str(path)
+            'the joint-mapping override must be a JSON object like {"LeftArm": "joint name"} '
+            '(a twist share: {"LeftForeArmTwist1.share": 0.5})',
+            str(path),
         )
     _check_canonical_names(data, str(path))
     return data
 
 
-def _check_canonical_names(override: dict[str, str | None], where: str | None = None) -> None:
-    unknown = [k for k in override if k not in CANONICAL_JOINTS]
+def _valid_value(key: object, value: object) -> bool:
+    """A joint name or null, or a number (or numeric string) for a ``.share`` key."""
+    if isinstance(key, str) and key.endswith(SHARE_SUFFIX):
+        try:
+            return not isinstance(value, bool) and abs(float(value)) <= 1.0  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            return False
+    return isinstance(value, str) or value is None
+
+
+def _known_key(key: str) -> bool:
+    base = key[: -len(SHARE_SUFFIX)] if key.endswith(SHARE_SUFFIX) else None
+    return key in CANONICAL_JOINTS or key in EXTRA_JOINTS or (base is not None and "Twist" in base and base in EXTRA_JOINTS)
+
+
+def _check_canonical_names(override: dict[str, object], where: str | None = None) -> None:
+    unknown = [k for k in override if not _known_key(str(k))]
     if unknown:
         hints = []
         for k in unknown:
-            close = difflib.get_close_matches(str(k), CANONICAL_JOINTS, n=1)
+            close = difflib.get_close_matches(str(k), CANONICAL_JOINTS + EXTRA_JOINTS, n=1)
             hints.append(f"{k!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
         prefix = f"{where}: " if where else ""
         raise MappingError(
             f"{prefix}unknown canonical joint(s) in the override: {', '.join(hints)}; "
-            f"the canonical joints are {', '.join(CANONICAL_JOINTS)}"
+            f"the canonical joints are {', '.join(CANONICAL_JOINTS)}; extra joints are named like LeftHandIndex1, "
+            "LeftHandIndex0 (metacarpal), LeftFootBigToe1, LeftForeArmTwist1 (+ '.share' for its twist share)"
         )
 
 
 def _resolve_override(skeleton: Skeleton, override: dict[str, str | None] | None) -> dict[str, int | None]:
     if not override:
         return {}
-    _check_canonical_names(override)
-    missing = [v for v in override.values() if v is not None and skeleton.find(v) is None]
+    _check_canonical_names(override)  # type: ignore[arg-type]
+    names = {k: v for k, v in override.items() if not k.endswith(SHARE_SUFFIX)}
+    missing = [v for v in names.values() if v is not None and skeleton.find(v) is None]
     if missing:
         hints = []
         for v in missing:
             close = difflib.get_close_matches(v, skeleton.names, n=1)
             hints.append(f"{v!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
         raise MappingError(f"the override names joint(s) the skeleton does not have: {', '.join(hints)}")
-    return {c: (None if v is None else skeleton.index(v)) for c, v in override.items()}
+    return {c: (None if v is None else skeleton.index(v)) for c, v in names.items() if c in CANONICAL_JOINTS}
 
 
 def require_complete(mapping: JointMapping, skeleton_label: str) -> None:
@@ -902,16 +922,24 @@ class _Mapper:
                 self.warn(problem + f"; {loser} kept with low confidence")
 
 
-def map_joints(skeleton: Skeleton, override: dict[str, str] | None = None) -> JointMapping:
-    """Map ``skeleton``'s joints to the canonical joints by name and structure (see the module docstring).
+def map_joints(
+    skeleton: Skeleton, override: dict[str, str] | None = None, *, vrm: dict[str, str] | None = None
+) -> JointMapping:
+    """Map ``skeleton``'s joints to the canonical joints by name and structure (see the module docstring), then
+    its fingers, toes and twist bones (:mod:`retarget_core.extras`) into ``mapping.extras``.
 
-    override: canonical joint -> joint name (a None value leaves that canonical joint unmapped); these win with
-    method ``"override"`` and confidence 1. Raises MappingError when the override names an unknown canonical joint
-    or a joint the skeleton does not have. Missing required joints do not raise: see ``mapping.missing()`` and
-    :func:`require_complete`.
+    override: canonical or extra joint -> joint name (a None value leaves that joint unmapped); these win with
+    method ``"override"`` and confidence 1; ``"<twist joint>.share"`` keys set twist shares. Raises MappingError
+    when the override names an unknown joint key or a joint the skeleton does not have. Missing required joints
+    do not raise: see ``mapping.missing()`` and :func:`require_complete`. vrm: extra joint -> joint name from the
+    file's VRM humanoid bone map (:func:`retarget_core.io.vrm.humanoid_extras`).
     """
+    from retarget_core.extras import map_extras
+
     forced = _resolve_override(skeleton, override)  # type: ignore[arg-type]
-    return _Mapper(skeleton, forced).run()
+    mapping = _Mapper(skeleton, forced).run()
+    map_extras(skeleton, mapping, override, vrm)  # type: ignore[arg-type]
+    return mapping
 
 
 __all__ = [

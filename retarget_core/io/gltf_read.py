@@ -31,6 +31,7 @@ from retarget_core.character import Character, Material
 from retarget_core.config import get_settings
 from retarget_core.errors import InvalidFileError, LimitExceededError, UnsupportedFileError
 from retarget_core.io.accessors import GltfData, check_extensions, require_finite
+from retarget_core.io.vrm import humanoid_canonical, humanoid_extras
 from retarget_core.motion import Motion
 from retarget_core.skeleton import Skeleton
 
@@ -65,6 +66,7 @@ class GltfContents:
     character: Character | None
     motions: list[Motion] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    humanoid: dict[str, str] = field(default_factory=dict)  # VRM humanoid bones as joint names (io/vrm.py)
 
 
 # ----- container ------------------------------------------------------------------------------------------------------
@@ -861,7 +863,9 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
         motion = _build_motion(data, nodes, skeleton, skeleton_nodes, name, channels, fps, notes)
         if motion is not None:
             motions.append(motion)
-    return GltfContents(character, motions, list(dict.fromkeys(notes)))
+    node_joint = dict(zip(skeleton_nodes, skeleton.names, strict=True))
+    humanoid = {**humanoid_canonical(data.doc, node_joint), **humanoid_extras(data.doc, node_joint)}
+    return GltfContents(character, motions, list(dict.fromkeys(notes)), humanoid)
 
 
 def read_gltf_character(path: str | Path) -> Character:

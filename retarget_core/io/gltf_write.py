@@ -4,8 +4,9 @@ Layout: the scene's root nodes are the skeleton's root joint(s) and the mesh nod
 node must not sit under a joint, and its own transform is ignored by glTF). Joint ``j`` is node ``j`` with the
 skeleton's rest translation and rotation; the skin's inverse bind matrices are the inverses of the rest world
 matrices, so the written mesh (the character's rest vertices) shows unchanged when no animation plays. The
-animation has one LINEAR rotation channel per joint and a translation channel for root joints and for every joint
-whose translations differ from its rest offset in some frame, keyed at ``i / fps``.
+animation keys, at ``i / fps``, the rotation of every joint that moves (the roots always, with their translation,
+so the clip keeps its full length) and the translation of every joint whose offset moves. A joint the motion
+holds still is written once: no channel when it stays at its node's rest transform, else a single key.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from retarget_core.motion import Motion
 FLOAT, UBYTE, USHORT, UINT = 5126, 5121, 5123, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 GENERATOR = "retarget_core"
+CONSTANT_TOLERANCE = 1e-7  # a track whose values stay this close to its first frame's is written once
 
 
 class _Blob:
@@ -263,11 +265,39 @@ def _animation(character: Character, motion: Motion, blob: _Blob, clip_name: str
             )
         )
 
+    rest_r = rot.normalize(sk.rest_rotations.detach().double()).numpy()
+    single_key: list[int] = []  # the one-key time accessor, made when first needed
+
+    def once(node: int, path: str, value: np.ndarray, kind: str) -> None:
+        if not single_key:
+            single_key.append(blob.accessor(np.zeros(1, np.float32), FLOAT, "SCALAR", bounds=True))
+        samplers.append(
+            pygltflib.AnimationSampler(
+                input=single_key[0], output=blob.accessor(value[None], FLOAT, kind), interpolation="LINEAR"
+            )
+        )
+        channels.append(pygltflib.AnimationChannel(
+            sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)))  # fmt: skip
+
     for j in range(sk.num_joints):
-        channel(j, "rotation", _continuous(rots[:, j]), "VEC4")
-        if sk.parents[j] < 0 or np.abs(trans[:, j] - rest_t[j]).max() > 1e-6:
-            channel(j, "translation", trans[:, j], "VEC3")
+        q = _continuous(rots[:, j])
+        if sk.parents[j] < 0 or not _constant(q):
+            channel(j, "rotation", q, "VEC4")
+        elif min(np.abs(q[0] - rest_r[j]).max(), np.abs(q[0] + rest_r[j]).max()) > CONSTANT_TOLERANCE:
+            once(j, "rotation", q[0], "VEC4")  # held away from its rest rotation: one key
+        if sk.parents[j] < 0:
+            channel(j, "translation", trans[:, j], "VEC3")  # the roots carry the clip's full length
+        elif np.abs(trans[:, j] - rest_t[j]).max() > 1e-6:
+            if _constant(trans[:, j]):
+                once(j, "translation", trans[0, j], "VEC3")
+            else:
+                channel(j, "translation", trans[:, j], "VEC3")
     return pygltflib.Animation(name=clip_name, samplers=samplers, channels=channels)
+
+
+def _constant(values: np.ndarray) -> bool:
+    """Whether a track ``(F, d)`` holds one value on every frame (within :data:`CONSTANT_TOLERANCE`)."""
+    return bool(np.abs(values - values[:1]).max() <= CONSTANT_TOLERANCE) if len(values) else True
 
 
 def glb_bytes(character: Character, motion: Motion | None = None, *, clip_name: str = "retarget") -> bytes:
