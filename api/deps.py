@@ -10,9 +10,10 @@ from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyHeader
 from sqlalchemy.orm import Session
 
-from api.db import get_sessionmaker
+from api.db import session_scope
 from api.keycache import KeyCache
 from api.models import ApiKey
+from api.outbox import SentMarker
 from api.settings import Settings
 from api.storage import Storage
 
@@ -28,20 +29,13 @@ async def get_settings_dep(request: Request) -> Settings:
 
 
 async def get_session(request: Request) -> AsyncIterator[Session]:
-    """A session for the request, finished on the event loop.
+    """A session for the request (:func:`api.db.session_scope`), ended on the event loop.
 
     The end (commit, or rollback on error) must not wait for a thread: under load every thread may be busy,
     and a request that holds a connection while it waits for a thread to give it back starves the pool (the
     threads wait for connections, the connections for threads). Ending a short transaction is quick."""
-    session = get_sessionmaker(request.app.state.settings.resolved_database_url)()
-    try:
+    with session_scope(request.app.state.settings.resolved_database_url) as session:
         yield session
-        session.commit()
-    except BaseException:
-        session.rollback()
-        raise
-    finally:
-        session.close()
 
 
 async def get_storage(request: Request) -> Storage:
@@ -52,10 +46,16 @@ async def get_celery(request: Request) -> Celery:
     return request.app.state.celery
 
 
+async def get_marker(request: Request) -> SentMarker | None:
+    """The process's outbox thread (None when runs are sent in the request: ``sent_mark_interval_seconds`` 0)."""
+    return getattr(request.app.state, "sent_marker", None)
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 SessionDep = Annotated[Session, Depends(get_session)]
 StorageDep = Annotated[Storage, Depends(get_storage)]
 CeleryDep = Annotated[Celery, Depends(get_celery)]
+MarkerDep = Annotated[SentMarker | None, Depends(get_marker)]
 
 
 def _lookup(request: Request, key: str) -> ApiKey | None:

@@ -1,4 +1,5 @@
-"""Job state changes shared by the API and the worker: send, cancel, retry, queue a webhook.
+"""Job state changes shared by the API and the worker: cancel, retry, settle a lost run, queue a webhook
+(sending runs is :mod:`api.outbox`).
 
 Every change is a conditional UPDATE on (id, attempt, status), so two processes acting on one job never both win.
 """
@@ -6,48 +7,17 @@ Every change is a conditional UPDATE on (id, attempt, status), so two processes 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from datetime import datetime
 
 from celery import Celery
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from api.db import session_scope, updated, utcnow
+from api.db import updated, utcnow
 from api.models import Job, WebhookDelivery
-from api.queue import TASK_DELIVER_WEBHOOK, TASK_RUN_JOB
-
-if TYPE_CHECKING:  # sentmarks sends with send_job
-    from api.sentmarks import SentMarker
+from api.queue import TASK_DELIVER_WEBHOOK
 
 log = logging.getLogger(__name__)
-
-
-def send_job(celery: Celery, job_id: str, attempt: int, queue: str) -> bool:
-    """Put a run of a job on its queue; False (logged) when the broker cannot be reached (the reaper re-sends)."""
-    try:
-        celery.send_task(TASK_RUN_JOB, kwargs={"job_id": job_id, "attempt": attempt}, queue=queue)
-        return True
-    except Exception:
-        log.exception("could not send job %s (attempt %s); the reaper will send it again", job_id, attempt)
-        return False
-
-
-def send_and_mark(url: str, celery: Celery, runs: list[tuple[str, int, str]], marker: SentMarker | None = None
-                  ) -> None:
-    """Send runs (job id, attempt, queue) to the broker, then record ``sent_at`` for those it took (now, or by
-    ``marker`` in its next batch). A run whose send failed, or whose process died before recording it, is sent
-    by the reaper within seconds."""
-    sent = [(job_id, attempt) for job_id, attempt, queue in runs if send_job(celery, job_id, attempt, queue)]
-    if not sent:
-        return
-    if marker is not None:
-        marker.add(sent)
-        return
-    now = utcnow()
-    with session_scope(url) as s:
-        for job_id, attempt in sent:
-            s.execute(update(Job).where(Job.id == job_id, Job.attempt == attempt, Job.sent_at.is_(None))
-                      .values(sent_at=now))
 
 
 def queue_webhook(session: Session, job: Job) -> str | None:
@@ -107,3 +77,35 @@ def retry(session: Session, job: Job) -> bool:
     )
     session.refresh(job)
     return bool(done)
+
+
+def settle_lost(session: Session, job: Job, where: tuple[object, ...], now: datetime, max_attempts: int,
+                hard_limit_seconds: float, cause: str, sent: bool = False) -> tuple[str | None, str | None]:
+    """End or repeat a running attempt whose process is gone (``where``: the conditions that it still is).
+
+    Canceled when a cancel was asked, failed past the hard time limit or after ``max_attempts`` runs, otherwise
+    queued again as the next attempt (``sent``: its message is on its way already). Returns the outcome
+    ('queued', 'canceled', 'failed', or None when another process changed the row first) and the webhook
+    delivery to send after the commit."""
+    lost, nxt = job.attempt, job.attempt + 1
+    ran = (now - job.started_at).total_seconds() if job.started_at else 0.0
+    if job.cancel_requested:
+        values = {"status": "canceled", "message": "canceled by the client (its worker had stopped)"}
+    elif ran >= hard_limit_seconds:
+        values = {"status": "failed", "error_kind": "timeout",
+                  "message": f"the job ran longer than the hard limit of {hard_limit_seconds:g} s (setting "
+                  "RETARGET_API_JOB_HARD_TIME_LIMIT_SECONDS); try a shorter frame range"}
+    elif lost >= max_attempts:
+        values = {"status": "failed", "error_kind": "worker_lost",
+                  "message": f"the worker running this job stopped {lost} times (crash, out of memory, killed or "
+                  "shut down); it was not started again"}
+    else:
+        n = updated(session, update(Job).where(*where).values(
+            status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None, started_at=None,
+            heartbeat_at=None, sent_at=now if sent else None, updated_at=now,
+            note=f"attempt {lost} stopped ({cause}); running again as attempt {nxt}"))
+        return ("queued" if n else None), None
+    if not updated(session, update(Job).where(*where).values(finished_at=now, updated_at=now, **values)):
+        return None, None
+    session.refresh(job)
+    return str(values["status"]), queue_webhook(session, job)

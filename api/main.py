@@ -17,9 +17,9 @@ from starlette.types import Scope
 from api import contract
 from api.db import LoopReader, LoopWriter, configure_pool
 from api.keycache import KeyCache
+from api.outbox import SentMarker
 from api.queue import make_celery
-from api.routes import batches, characters, health, jobs, motions, reviews
-from api.sentmarks import SentMarker
+from api.routes import assets, batches, characters, health, jobs, reviews
 from api.settings import Settings, get_settings
 from api.storage import Storage
 
@@ -100,8 +100,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["*"],
             expose_headers=["Location", "Content-Disposition"],
         )
-    for module in (health, characters, motions, jobs, batches, reviews):
-        app.include_router(module.router)
+    for router in (health.router, assets.character_router, characters.router, assets.motion_router, jobs.router,
+                   batches.router, reviews.router):
+        app.include_router(router)
     contract.install(app)
     if (settings.frontend_dir / "index.html").is_file():
         app.mount("/", SPAStaticFiles(directory=settings.frontend_dir, html=True), name="frontend")

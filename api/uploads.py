@@ -13,6 +13,7 @@ import asyncio
 import hashlib
 import re
 import time
+import unicodedata
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,13 +91,24 @@ def too_large(max_bytes: int) -> str:
             "RETARGET_API_MAX_UPLOAD_BYTES)")
 
 
+_UNSAFE = frozenset(("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"))
+"""Unicode categories dropped from client names: controls, format characters (bidi overrides), surrogates,
+private and unassigned code points, line and paragraph separators."""
+MAX_FILENAME_CHARS = 255
+
+
+def safe_text(text: str) -> str:
+    """``text`` without unsafe characters (:data:`_UNSAFE`), spaces at its ends stripped."""
+    return "".join(ch for ch in text if unicodedata.category(ch) not in _UNSAFE).strip()
+
+
 def safe_filename(name: str | None) -> str | None:
-    """The base name of a client-supplied file name, without path parts or control characters."""
+    """The last part of a client-supplied file name, without control or format characters; None when nothing
+    usable is left (empty, or only dots such as "." and "..", which name directories, not files)."""
     if not name:
         return None
-    base = re.split(r"[\\/]", name)[-1]
-    base = re.sub(r"[\x00-\x1f\x7f]", "", base).strip()
-    return base[:255] or None
+    base = safe_text(re.split(r"[\\/]", name)[-1])[:MAX_FILENAME_CHARS].strip()
+    return base if base.strip(". ") else None
 
 
 async def bounded(stream: AsyncIterator[bytes], max_total: int, max_bytes: int, idle_timeout: float,
@@ -160,6 +172,19 @@ async def receive_upload(request: Request, dest: Path, max_bytes: int, chunk_byt
         raise UploadError(400, "the upload is empty" if not is_multipart else
                           "no file in the form: send the file in a part named 'file'")
     return ReceivedFile(dest, sink.digest.hexdigest(), sink.size, sink.head, filename, fields)
+
+
+async def _feed(parser: MultipartParser, stream: AsyncIterator[bytes], sink: _Sink) -> None:
+    """Run the body through the parser; UploadError 400 when it is malformed."""
+    try:
+        async for chunk in stream:
+            parser.write(chunk)
+            await sink.flush()
+        parser.finalize()
+    except UploadError:
+        raise
+    except Exception as exc:  # python_multipart raises its own errors on malformed bodies
+        raise UploadError(400, f"malformed multipart body: {exc}") from exc
 
 
 async def _receive_multipart(
@@ -231,15 +256,7 @@ async def _receive_multipart(
             "on_headers_finished": on_headers_finished,
         },
     )
-    try:
-        async for chunk in stream:
-            parser.write(chunk)
-            await sink.flush()
-        parser.finalize()
-    except UploadError:
-        raise
-    except Exception as exc:  # python_multipart raises its own errors on malformed bodies
-        raise UploadError(400, f"malformed multipart body: {exc}") from exc
+    await _feed(parser, stream, sink)
     if not found["file"]:
         raise UploadError(400, "no file in the form: send the file in a part named 'file'")
     return found["filename"], fields  # type: ignore[return-value]

@@ -23,8 +23,9 @@ from sqlalchemy import delete, or_, select, update
 
 from api import idempotency
 from api.db import session_scope, updated, utcnow
-from api.joblife import queue_webhook, send_and_mark, send_webhook
+from api.joblife import send_webhook, settle_lost
 from api.models import Job, WebhookDelivery, WorkerCall, WorkerProcess
+from api.outbox import submit
 from api.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -55,39 +56,16 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
         dead = s.scalars(select(Job).where(Job.status == "running", Job.heartbeat_at < stale)).all()
         for job in dead:
             mine = (Job.id == job.id, Job.attempt == job.attempt, Job.status == "running", Job.heartbeat_at < stale)
-            ran = (now - job.started_at).total_seconds() if job.started_at else 0.0
-            if job.cancel_requested:
-                values = {"status": "canceled", "message": "canceled by the client (its worker had stopped)"}
-                bucket = report.canceled
-            elif ran >= settings.job_hard_time_limit_seconds:
-                values = {"status": "failed", "error_kind": "timeout",
-                          "message": f"the job ran longer than the hard limit of {settings.job_hard_time_limit_seconds}"
-                          " s (setting RETARGET_API_JOB_HARD_TIME_LIMIT_SECONDS); try a shorter frame range"}
-                bucket = report.failed
-            elif job.attempt >= settings.max_job_attempts:
-                values = {"status": "failed", "error_kind": "worker_lost",
-                          "message": f"the worker running this job stopped {job.attempt} times (crash, out of "
-                          "memory or shut down); it was not started again"}
-                bucket = report.failed
-            else:
-                # read before the UPDATE: the ORM synchronises the loaded object with it
-                job_id, nxt, queue, worker, last = job.id, job.attempt + 1, job.queue, job.worker, job.heartbeat_at
-                n = updated(s, update(Job).where(*mine).values(
-                    status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None,
-                    started_at=None, heartbeat_at=None, sent_at=None, updated_at=now,
-                    note=f"attempt {nxt - 1} was lost (its worker stopped answering); running again as "
-                    f"attempt {nxt}"))
-                if n:
-                    report.requeued.append(job_id)
-                    to_send.append((job_id, nxt, queue))
-                    log.warning("job %s: worker %s silent since %s; queued again as attempt %s",
-                                job_id, worker, last, nxt)
-                continue
-            n = updated(s, update(Job).where(*mine).values(finished_at=now, updated_at=now, **values))
-            if n:
-                bucket.append(job.id)
-                s.refresh(job)
-                deliveries.append(queue_webhook(s, job))
+            job_id, nxt, queue, worker, last = job.id, job.attempt + 1, job.queue, job.worker, job.heartbeat_at
+            outcome, delivery = settle_lost(s, job, mine, now, settings.max_job_attempts,
+                                            settings.job_hard_time_limit_seconds, "its worker stopped answering")
+            if outcome == "queued":
+                report.requeued.append(job_id)
+                to_send.append((job_id, nxt, queue))
+                log.warning("job %s: worker %s silent since %s; queued again as attempt %s", job_id, worker, last, nxt)
+            elif outcome is not None:
+                (report.canceled if outcome == "canceled" else report.failed).append(job_id)
+                deliveries.append(delivery)
 
         resend_before = now - timedelta(seconds=settings.requeue_queued_after_seconds)
         never_before = now - timedelta(seconds=settings.resend_unsent_after_seconds)
@@ -122,7 +100,7 @@ def reap(settings: Settings, celery: Celery) -> ReapReport:
         s.execute(delete(WorkerCall).where(WorkerCall.created_at < old))
         idempotency.purge(s, settings.idempotency_ttl_seconds)
 
-    send_and_mark(url, celery, to_send)
+    submit(url, celery, to_send)
     for delivery_id in deliveries:
         send_webhook(celery, delivery_id)
     for d_id, attempt in webhook_sends:

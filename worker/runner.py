@@ -20,7 +20,7 @@ from typing import Any
 from sqlalchemy import select, update
 
 from api.db import session_scope, updated, utcnow
-from api.joblife import queue_webhook
+from api.joblife import queue_webhook, settle_lost
 from api.models import Asset, Job
 from api.redact import redact
 from api.settings import Settings
@@ -140,31 +140,19 @@ class JobRun:
             time.sleep(min(1.0, self.settings.heartbeat_interval_seconds))
 
     def _requeue_lost(self, old_pid: int | None) -> bool:
-        lost, nxt = self.attempt, self.attempt + 1
-        now = utcnow()
-        mine = (Job.id == self.job_id, Job.attempt == lost, Job.status == "running", Job.worker_pid == old_pid)
-        if lost >= self.settings.max_job_attempts:
-            with session_scope(self.url) as s:
-                n = updated(s, update(Job).where(*mine).values(
-                    status="failed", error_kind="worker_lost", finished_at=now, updated_at=now,
-                    message=f"the worker process running this job stopped {lost} times (crash, out of memory or "
-                    "killed); it was not started again"))
-                if n:
-                    job = s.get(Job, self.job_id)
-                    assert job is not None
-                    s.refresh(job)
-                    self.lost_webhook = queue_webhook(s, job)
-            return False
+        mine = (Job.id == self.job_id, Job.attempt == self.attempt, Job.status == "running", Job.worker_pid == old_pid)
         with session_scope(self.url) as s:
-            n = updated(s, update(Job).where(*mine).values(
-                status="queued", attempt=nxt, stage=None, progress=0.0, worker=None, worker_pid=None,
-                started_at=None, heartbeat_at=None, updated_at=now, sent_at=now,
-                note=f"attempt {lost} stopped (its worker process was killed or crashed); running again as "
-                f"attempt {nxt}"))
-        if n != 1:
+            job = s.get(Job, self.job_id)
+            if job is None:
+                return False
+            lost = job.attempt
+            outcome, self.lost_webhook = settle_lost(
+                s, job, mine, utcnow(), self.settings.max_job_attempts, self.settings.job_hard_time_limit_seconds,
+                "its worker process was killed or crashed", sent=True)
+        if outcome != "queued":
             return False
-        log.warning("job %s: attempt %s lost its process; running it again as attempt %s", self.job_id, lost, nxt)
-        self.attempt = nxt
+        log.warning("job %s: attempt %s lost its process; running it again as attempt %s", self.job_id, lost, lost + 1)
+        self.attempt = lost + 1
         return True
 
     def beat(self) -> None:

@@ -9,16 +9,16 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api import idempotency
-from api.deps import CeleryDep, CurrentKey, SessionDep, SettingsDep
+from api.deps import CeleryDep, CurrentKey, MarkerDep, SessionDep, SettingsDep
 from api.idempotency import REPLAYED_HEADER, IdempotencyKey, fingerprint
 from api.joblife import cancel, queue_webhook, send_webhook
 from api.limits import check_active_jobs
 from api.models import ApiKey, Batch, Job, new_id
 from api.pages import MAX_QUERY_INT, page_bounds
-from api.routes.jobs import dispatch, latest_deliveries, new_job
 from api.routing import SessionRoute
 from api.schemas import BatchCreate, BatchOut, ErrorOut, Page
 from api.serialize import batch_out
+from api.services.jobs import latest_deliveries, new_job, submit_jobs
 
 router = APIRouter(prefix="/v1/batches", tags=["batches"], route_class=SessionRoute)
 
@@ -45,7 +45,8 @@ def _out(session: Session, batch: Batch) -> BatchOut:
     responses={422: {"model": ErrorOut}},
 )
 def create_batch(body: BatchCreate, response: Response, session: SessionDep, key: CurrentKey,
-                 settings: SettingsDep, celery: CeleryDep, idempotency_key: IdempotencyKey = None) -> BatchOut:
+                 settings: SettingsDep, celery: CeleryDep, marker: MarkerDep,
+                 idempotency_key: IdempotencyKey = None) -> BatchOut:
     n = len(body.motion_ids) * len(body.target_character_ids)
     if n > settings.max_batch_jobs:
         raise HTTPException(422, f"the batch would create {n} jobs; the limit is {settings.max_batch_jobs} "
@@ -68,7 +69,7 @@ def create_batch(body: BatchCreate, response: Response, session: SessionDep, key
         for c in body.target_character_ids
     ]
     session.flush()
-    dispatch(session, celery, jobs, settings.resolved_database_url)
+    submit_jobs(session, celery, jobs, settings.resolved_database_url, marker)
     response.headers["Location"] = f"/v1/batches/{batch.id}"
     return _out(session, batch)
 

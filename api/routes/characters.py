@@ -1,19 +1,21 @@
-"""``/v1/characters``: uploaded characters, built-in bodies, and bodies made from shape parameters."""
+"""``/v1/characters/builtin``: bodies made from shape parameters (uploads, lists and downloads of characters are
+the asset routes)."""
 
 from __future__ import annotations
 
-from fastapi import HTTPException, Response
+from fastapi import APIRouter, HTTPException, Response
 from starlette.concurrency import run_in_threadpool
 
 from api import idempotency
 from api.deps import CeleryDep, CurrentKey, SettingsDep
 from api.models import new_id
 from api.queue import TASK_MAKE_BODY
-from api.routes.assets import _insert_asset, answer_asset, make_router, replayed_asset
+from api.routing import SessionRoute
 from api.schemas import AssetOut, BodyCreate, ErrorOut
+from api.services.assets import answer_asset, insert_asset, replayed_asset
 from api.worker_calls import WorkerCallFailed, WorkerUnavailable, call_worker
 
-router = make_router("character")
+router = APIRouter(prefix="/v1/characters", tags=["characters"], route_class=SessionRoute)
 
 
 @router.post(
@@ -44,7 +46,7 @@ async def make_body(body: BodyCreate, response: Response, key: CurrentKey, setti
         raise HTTPException(503, str(exc)) from exc
     name = body.name or result.get("name") or "generated body"
     out, replayed = await run_in_threadpool(
-        _insert_asset, url, (idempotency_key, scope, fp) if idempotency_key else None,
+        insert_asset, url, (idempotency_key, scope, fp) if idempotency_key else None,
         id=new_id("chr"), kind="character", owner_id=key.id, origin="generated", name=name[:300],
         filename=f"{name[:200]}.glb", format="glb", sha256=result["sha256"], size_bytes=result["size_bytes"],
         info=result["info"], params=result.get("params", body.params),

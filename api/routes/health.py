@@ -14,11 +14,11 @@ from api.db import utcnow
 from api.deps import CeleryDep, CurrentKey, OptionalKey, SessionDep, SettingsDep, StorageDep
 from api.models import WorkerProcess
 from api.queue import IO_QUEUE, JOB_QUEUES, WEBHOOK_QUEUE
-from api.routes.assets import ALLOWED_FORMATS
 from api.routing import SessionRoute
 from api.schemas import KeyInfo, ServiceInfo, StageOut
 from api.security import SIGNATURE_HEADER
 from api.serialize import RESULT_FILES
+from api.services.assets import ALLOWED_FORMATS
 from retarget_core.stages import STAGES
 
 router = APIRouter(tags=["health"], route_class=SessionRoute)

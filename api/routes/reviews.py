@@ -16,10 +16,10 @@ from api import reviewlinks
 from api.db import utcnow
 from api.deps import CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.models import Job, ReviewLink
-from api.routes.jobs import find_job
 from api.routing import SessionRoute
 from api.schemas import ErrorOut
 from api.serialize import RESULT_FILES
+from api.services.jobs import find_job
 from api.settings import Settings
 
 router = APIRouter(tags=["reviews"], route_class=SessionRoute)

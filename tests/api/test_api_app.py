@@ -217,6 +217,7 @@ def test_job_lifecycle_submit_cancel_retry(api_env: ApiEnv) -> None:
 
     r = api_env.client.post(f"/v1/jobs/{job['id']}/retry", headers=h)
     assert r.status_code == 202 and r.json()["status"] == "queued" and r.json()["attempt"] == 2
+    api_env.client.app.state.sent_marker.flush()  # retries go through the same outbox
     assert api_env.celery.named(TASK_RUN_JOB)[-1].kwargs == {"job_id": job["id"], "attempt": 2}
     assert api_env.client.post(f"/v1/jobs/{job['id']}/retry", headers=h).status_code == 409
 
@@ -295,6 +296,7 @@ def test_batch_two_by_two_and_aggregate(api_env: ApiEnv) -> None:
     assert batch["total"] == 4 and batch["status"] == "queued" and batch["counts"]["queued"] == 4
     pairs = {(j["motion_id"], j["target_character_id"]) for j in batch["jobs"]}
     assert pairs == {(m1, c1), (m1, c2), (m2, c1), (m2, c2)}
+    api_env.client.app.state.sent_marker.flush()  # batches go through the same outbox
     assert len(api_env.celery.named(TASK_RUN_JOB)) == 4
     listed = api_env.client.get("/v1/jobs", headers=h, params={"batch_id": batch["id"], "limit": 10}).json()
     assert listed["total"] == 4
@@ -419,3 +421,21 @@ def test_make_a_body_from_parameters(api_env: ApiEnv) -> None:
     assert api_env.client.get(f"/v1/characters/{body['id']}", headers=api_env.key("b")).status_code == 404
     r = api_env.client.post("/v1/characters/builtin", headers=h, json={"params": {"height": 3.0}})
     assert r.status_code == 422 and r.json()["detail"] == "invalid body parameters: height: too tall"
+
+
+def test_unsafe_upload_file_names_are_cleaned_or_dropped(api_env: ApiEnv) -> None:
+    """"." and ".." name directories; path parts and control characters never reach a stored name or a download."""
+    h = api_env.key()
+    cases = {".": (None, "motion"), "..": (None, "motion"), "a/..": (None, "motion"), "": (None, "motion"),
+             "../../etc/pass\x00wd.bvh": ("passwd.bvh", "passwd"), "c:\\clips\\walk\x1b.bvh": ("walk.bvh", "walk"),
+             "\u202eevil.bvh": ("evil.bvh", "evil")}
+    for i, (sent, (stored, name)) in enumerate(cases.items()):
+        r = api_env.client.post("/v1/motions", params={"filename": sent}, content=BVH + f"#{i}".encode(), headers=h)
+        assert r.status_code == 201, (sent, r.text)
+        body = r.json()
+        assert (body["filename"], body["name"]) == (stored, name), sent
+        got = api_env.client.get(f"/v1/motions/{body['id']}/file", headers=h)
+        assert got.status_code == 200
+        assert f'filename="{stored or "motion.bvh"}"' in got.headers["content-disposition"], sent
+    r = upload(api_env, "motions", BVH + b"#multipart", h, "..")
+    assert r.status_code == 201 and r.json()["filename"] is None and r.json()["name"] == "motion"

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from api.db import get_engine, session_scope
 from api.models import ApiKey, Asset, Job
-from api.routes import jobs as jobs_routes
+from api.services import submission
 
 GLB = b"glTF\x02\x00\x00\x00" + b"\x00" * 200
 BVH = b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xrotation Yrotation Zrotation\n}\nMOTION\n"
@@ -100,8 +100,8 @@ def test_submission_waited_on_by_a_lock_is_written_in_a_thread(api_env: ApiEnv,
         in_thread.append(idem)
         return write_in_thread(url, key, values, idem, *rest)
 
-    write_in_thread = jobs_routes._write_job_in_thread
-    monkeypatch.setattr(jobs_routes, "_write_job_in_thread", spy)
+    write_in_thread = submission._write_job_in_thread
+    monkeypatch.setattr(submission, "_write_job_in_thread", spy)
     h = api_env.key()
     m, c = assets(api_env, h)
     body = {"motion_id": m, "target_character_id": c}

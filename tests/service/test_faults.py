@@ -19,7 +19,7 @@ from sqlalchemy import select
 
 from api.db import session_scope
 from api.models import ApiKey, Asset, Job
-from api.routes.jobs import new_job
+from api.services.jobs import new_job
 from api.settings import Settings
 from retarget_core.options import RetargetOptions
 
