@@ -4,7 +4,10 @@ Defaults: a 300-frame piece (at 30 fps) of CMU 02_08 on the bulky sample body (1
 ``--runs`` times (the first one builds the per-body cache, the others find it warm); the last run's stage times
 are reported in ms per frame, for the whole chain and for the copy alone (every refinement stage off).
 
-    python benchmarks/job_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json]
+    python benchmarks/job_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json] [--profile]
+
+``--profile`` also runs one default-chain job (body cache warm) under pyinstrument and writes its call tree
+beside the JSON (``<output>_profile.txt``): where the time goes, function by function.
 
 Run it alone (``flock /tmp/heavy.lock``): the machine's two cores are shared, and numbers taken beside another
 heavy process mean nothing. CPU seconds are printed beside wall seconds for that reason.
@@ -72,6 +75,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--runs", type=int, default=2, help="jobs per setting; the first one warms the body cache")
     ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "job_benchmark.json")
+    ap.add_argument("--profile", action="store_true", help="profile one default-chain job (pyinstrument)")
     args = ap.parse_args()
     print(f"job benchmark: {args.motion.name} on {Path(args.target).name}, {args.frames} frames at {args.fps:g} fps, "
           f"torch threads {torch.get_num_threads()} (the pipeline uses its own setting)")  # fmt: skip
@@ -90,6 +94,19 @@ def main() -> None:
         "when": time.strftime("%Y-%m-%d %H:%M:%S"), **results,
     }, indent=1))  # fmt: skip
     print(f"\nwrote {args.output}")
+    if args.profile:
+        profile_job(args.motion, args.target, args.frames, args.fps, args.output.with_name(args.output.stem + "_profile.txt"))
+
+
+def profile_job(motion: Path, target: str, frames: int, fps: float, out: Path) -> None:
+    """One default-chain job under pyinstrument; its call tree (calls under 1 % of the time hidden) to ``out``."""
+    from pyinstrument import Profiler
+
+    profiler = Profiler(interval=0.005)
+    with profiler:
+        run_once(motion, target, frames, fps, None)
+    out.write_text(profiler.output_text(unicode=False, color=False, show_all=False, time="seconds"))
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
