@@ -38,7 +38,7 @@ os.environ.setdefault("RETARGET_PARSE_BUDGET_BYTES", str(settings.parse_budget_b
 app = make_celery(settings, main="retarget-worker")
 
 
-@app.task(name=TASK_RUN_JOB, bind=True)
+@app.task(name=TASK_RUN_JOB, bind=True, Request="worker.lost:JobRequest")
 def run_job(self: Any, job_id: str, attempt: int) -> str:
     """Run one attempt of a job (a no-op when the row is not queued at that attempt: idempotent)."""
     hostname = self.request.hostname or f"worker@{os.uname().nodename}"

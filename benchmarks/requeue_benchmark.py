@@ -1,0 +1,216 @@
+"""How soon a job whose worker pool process is killed (SIGKILL) is queued again, over repeated kills.
+
+Real parts: a private redis-server, a SQLite database, one ``python -m worker --queues cpu`` process with the
+default heartbeat settings, and a real job (a sample clip on a sample body). The job is allowed many attempts;
+each round waits until an attempt runs, kills that attempt's pool process, and times until the row is queued
+(or running) again as the next attempt. Writes benchmarks/results/requeue_benchmark.json.
+
+    flock /tmp/heavy.lock .venv/bin/python benchmarks/requeue_benchmark.py --kills 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from sqlalchemy import select  # noqa: E402
+
+from api.db import dispose_all, session_scope, utcnow  # noqa: E402
+from api.migrate import upgrade  # noqa: E402
+from api.models import Asset, Job, WorkerProcess, new_id  # noqa: E402
+from api.queue import TASK_RUN_JOB, make_celery  # noqa: E402
+from api.security import create_key  # noqa: E402
+from api.settings import Settings  # noqa: E402
+from api.storage import Storage  # noqa: E402
+
+SAMPLES = REPO / "retarget_core" / "data" / "samples"
+RESULT = REPO / "benchmarks" / "results" / "requeue_benchmark.json"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_redis(root: Path) -> tuple[subprocess.Popen[bytes], str]:
+    """A private redis-server on a free port; its process and URL."""
+    import redis
+
+    port = free_port()
+    proc = subprocess.Popen(["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--dir", str(root),
+                             "--save", "", "--appendonly", "no"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            redis.Redis("127.0.0.1", port, socket_timeout=1).ping()
+            return proc, f"redis://127.0.0.1:{port}/0"
+        except redis.RedisError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def store(storage: Storage, path: Path, fmt: str) -> tuple[str, str]:
+    """Copy a file into the blob store; its sha256 and blob reference."""
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    tmp = storage.temp_path()
+    shutil.copyfile(path, tmp)
+    ref = storage.blob_ref(sha, fmt)
+    storage.commit_blob(tmp, ref)
+    return sha, ref
+
+
+def make_job(url: str, storage: Storage) -> str:
+    """A queued job row (the sample walk on the bulky sample body) with its assets; its id."""
+    storage.ensure()
+    m_sha, m_ref = store(storage, SAMPLES / "motions" / "007_03.bvh", "bvh")
+    c_sha, c_ref = store(storage, SAMPLES / "characters" / "mh_male_bulky.glb", "glb")
+    with session_scope(url) as s:
+        key, _ = create_key(s, "requeue-benchmark")
+        s.flush()
+        motion = Asset(id=new_id("mot"), kind="motion", owner_id=key.id, origin="upload", name="walk", filename="007_03.bvh",
+                       format="bvh", sha256=m_sha, size_bytes=1, info={})
+        body = Asset(id=new_id("chr"), kind="character", owner_id=key.id, origin="upload", name="bulky", filename="bulky.glb",
+                     format="glb", sha256=c_sha, size_bytes=1, info={})
+        s.add_all([motion, body])
+        s.flush()
+        job = Job(owner_id=key.id, motion_id=motion.id, target_character_id=body.id, motion_ref=m_ref,
+                  target_ref=c_ref, options={"fps": 30}, queue="cpu", status="queued",
+                  sent_at=utcnow())  # sent below: the reaper leaves it alone
+        s.add(job)
+        s.flush()
+        return job.id
+
+
+def row(url: str, job_id: str) -> Any:
+    with session_scope(url) as s:
+        return s.execute(select(Job.status, Job.attempt, Job.worker_pid, Job.note).where(Job.id == job_id)).one()
+
+
+def wait_ready(url: str, timeout: float) -> None:
+    """Until a worker has registered itself."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with session_scope(url) as s:
+            if s.scalar(select(WorkerProcess.hostname).limit(1)):
+                return
+        time.sleep(0.2)
+    raise TimeoutError(f"no worker ready after {timeout} s")
+
+
+def wait_running(url: str, job_id: str, attempt: int, timeout: float) -> int:
+    """The pool process id once ``attempt`` runs; TimeoutError otherwise."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        r = row(url, job_id)
+        if r.status == "running" and r.attempt == attempt and r.worker_pid:
+            return int(r.worker_pid)
+        if r.attempt > attempt or r.status in ("succeeded", "failed", "canceled"):
+            raise RuntimeError(f"attempt {attempt} never ran: {r}")
+        time.sleep(0.05)
+    raise TimeoutError(f"attempt {attempt} not running after {timeout} s")
+
+
+def time_requeue(url: str, job_id: str, attempt: int, pid: int, timeout: float) -> dict[str, float | None]:
+    """Kill the pool process of ``attempt``; seconds until the row is at the next attempt (queued or later) and
+    until that attempt runs."""
+    os.kill(pid, signal.SIGKILL)
+    killed = time.monotonic()
+    queued_s = running_s = None
+    while time.monotonic() - killed < timeout:
+        r = row(url, job_id)
+        if r.attempt > attempt and queued_s is None:
+            queued_s = time.monotonic() - killed
+        if r.attempt > attempt and r.status != "queued":
+            running_s = time.monotonic() - killed
+            break
+        time.sleep(0.05)
+    return {"queued_s": queued_s, "running_s": running_s}
+
+
+def run(kills: int, timeout: float) -> dict[str, Any]:
+    root = Path(tempfile.mkdtemp(prefix="requeue-bench-"))
+    redis_proc, redis_url = start_redis(root)
+    url = f"sqlite:///{root / 'bench.sqlite'}"
+    upgrade(url)
+    storage = Storage(root / "data")
+    job_id = make_job(url, storage)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
+    env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
+                "RETARGET_API_DATABASE_URL": url, "REDIS_URL": redis_url, "OMP_NUM_THREADS": "1",
+                "RETARGET_API_MAX_JOB_ATTEMPTS": str(kills + 1)})
+    log = open(root / "worker.log", "wb")  # noqa: SIM115 (kept open with the process)
+    worker = subprocess.Popen([sys.executable, "-m", "worker", "--queues", "cpu", "--concurrency", "1"], cwd=REPO,
+                              env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    rounds: list[dict[str, Any]] = []
+    try:
+        wait_ready(url, 180)  # its queue is declared: a message sent earlier could find no binding
+        make_celery(Settings(broker_url=redis_url)).send_task(TASK_RUN_JOB, kwargs={"job_id": job_id, "attempt": 1},
+                                                              queue="cpu")
+        for attempt in range(1, kills + 1):
+            pid = wait_running(url, job_id, attempt, 180)
+            time.sleep(1.0)  # the attempt is under way (past its claim)
+            took = time_requeue(url, job_id, attempt, pid, timeout)
+            rounds.append({"attempt": attempt, **took})
+            print(f"kill {attempt}: queued again after {took['queued_s']} s, running after {took['running_s']} s",
+                  flush=True)
+            if took["queued_s"] is None:
+                break
+    finally:
+        os.killpg(worker.pid, signal.SIGTERM)
+        try:
+            worker.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(worker.pid, signal.SIGKILL)
+        redis_proc.terminate()
+        redis_proc.wait(10)
+        dispose_all()
+    settings = Settings()
+    delays = [r["queued_s"] for r in rounds if r["queued_s"] is not None]
+    return {
+        "what": "seconds from SIGKILL of a job's pool process to its row being queued again (next attempt)",
+        "command": "flock /tmp/heavy.lock .venv/bin/python benchmarks/requeue_benchmark.py --kills "
+                   f"{kills}",
+        "date": datetime.now(UTC).strftime("%Y-%m-%d"),
+        "heartbeat_timeout_seconds": settings.heartbeat_timeout_seconds,
+        "kills": kills,
+        "requeued": len(delays),
+        "queued_max_s": max(delays) if delays else None,
+        "queued_median_s": statistics.median(delays) if delays else None,
+        "running_max_s": max((r["running_s"] for r in rounds if r["running_s"] is not None), default=None),
+        "rounds": rounds,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kills", type=int, default=20)
+    parser.add_argument("--timeout", type=float, default=120.0, help="give up on one kill after this long")
+    parser.add_argument("--out", type=Path, default=RESULT)
+    args = parser.parse_args()
+    result = run(args.kills, args.timeout)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps({k: v for k, v in result.items() if k != "rounds"}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
