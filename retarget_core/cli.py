@@ -161,6 +161,8 @@ def _print_info(info: dict[str, Any]) -> None:
         )
     else:
         out.print(f"vertices {info['vertices']}, triangles {info['triangles']}, height {info['height_m']:.3f} m")
+        for m in info.get("meshes", []):  # the role decided per mesh (docs/meshes.md)
+            out.print(f"mesh {m['name']}: {m['role']} ({m['reason']}), {m['vertices']} vertices")
     norm = info["normalization"]
     out.print(f"units {norm['unit']} (x{norm['scale']:g}), up axis {norm['up_axis']}, rest pose: {norm['rest_pose']}")
     table = Table(title="joint mapping")
@@ -169,6 +171,14 @@ def _print_info(info: dict[str, Any]) -> None:
     for canonical, row in info["mapping"]["joints"].items():
         table.add_row(canonical, row["joint"] or "[red]-[/]", f"{row['confidence']:.2f}", row["method"] or "")
     out.print(table)
+    if extras := info["mapping"].get("extras"):  # fingers, toes, twist bones (docs/mapping.md)
+        table = Table(title="extra joints")
+        for col in ("extra", "joint", "confidence", "method"):
+            table.add_column(col)
+        for name, row in extras.items():
+            share = f", share {row['share']:g}" if "share" in row else ""
+            table.add_row(name, row["joint"], f"{row['confidence']:.2f}", f"{row['method']}{share}")
+        out.print(table)
     for w in info["warnings"]:
         out.print(f"[yellow]note:[/] {w}")
 

@@ -202,7 +202,7 @@ def load_override(path: str | Path) -> dict[str, str]:
             str(path),
         )
     _check_canonical_names(data, str(path))
-    return data
+    return {k: (str(v) if k.endswith(SHARE_SUFFIX) else v) for k, v in data.items()}  # shares as strings (options)
 
 
 def _valid_value(key: object, value: object) -> bool:
@@ -217,7 +217,11 @@ def _valid_value(key: object, value: object) -> bool:
 
 def _known_key(key: str) -> bool:
     base = key[: -len(SHARE_SUFFIX)] if key.endswith(SHARE_SUFFIX) else None
-    return key in CANONICAL_JOINTS or key in EXTRA_JOINTS or (base is not None and "Twist" in base and base in EXTRA_JOINTS)
+    return (
+        key in CANONICAL_JOINTS
+        or key in EXTRA_JOINTS
+        or (base is not None and "Twist" in base and base in EXTRA_JOINTS)
+    )
 
 
 def _check_canonical_names(override: dict[str, object], where: str | None = None) -> None:

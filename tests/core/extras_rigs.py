@@ -14,6 +14,7 @@ import torch
 
 from retarget_core import rotations as rot
 from retarget_core.canonical import FINGERS, JointMapping
+from retarget_core.character import Character
 from retarget_core.mapping import map_joints
 from retarget_core.motion import Motion
 from retarget_core.skeleton import Skeleton
@@ -130,3 +131,54 @@ def mapped(sk: Skeleton, **kwargs: object) -> JointMapping:
 
 def finger_names(side: str, segments: tuple[int, ...] = (1, 2, 3)) -> list[str]:
     return [f"{side}Hand{f}{k}" for f in FINGERS for k in segments]
+
+
+def finger_body(preset: str = "male_bulky", rig_name: str = "mixamo") -> Character:
+    """A real MakeHuman body (the built-in preset's shape) on a whole MPFB2 rig with its own skin weights: the
+    Mixamo rig (52 joints, 5 fingers x 3) or the 'game engine' rig (Unreal names, 53 joints). Bone heads placed
+    by the rig's own rules, the 4 largest weights kept; metres, Y up, facing +Z, feet on y = 0."""
+    import numpy as np
+
+    from retarget_core.bodies import makehuman as mh
+    from retarget_core.bodies.presets import preset_params
+
+    params = preset_params(preset)
+    nb = mh.base_mesh().num_body_vertices
+    verts, _ = mh.shaped_vertices(params)
+    verts = verts * mh.UNITS_TO_METRES * (1.0 if params.height is None else params.height / mh._body_height(verts, nb))
+    raw = json.loads((mh.asset_dir() / f"rigs/standard/rig.{rig_name}.json").read_text())
+    bones = raw.get("bones", raw)
+    order: list[str] = []
+
+    def visit(b: str) -> None:
+        if b not in order:
+            if bones[b].get("parent"):
+                visit(bones[b]["parent"])
+            order.append(b)
+
+    for b in bones:
+        visit(b)
+    groups = mh.base_mesh().groups
+    heads = np.stack([verts[mh._point_indices(bones[b]["head"], groups)].mean(0) for b in order])
+    offset = np.array([-heads[0, 0], -verts[:nb, 1].min(), -heads[0, 2]])
+    heads, body = heads + offset, (verts[:nb] + offset).astype(np.float32)
+    parents = [order.index(bones[b]["parent"]) if bones[b].get("parent") else -1 for b in order]
+    local = np.stack([heads[j] - (heads[p] if p >= 0 else 0.0) for j, p in enumerate(parents)])
+    weights = json.loads((mh.asset_dir() / f"rigs/standard/weights.{rig_name}.json").read_text())["weights"]
+    dense = np.zeros((nb, len(order)))
+    for bone, pairs in weights.items():
+        arr = np.asarray(pairs, dtype=np.float64).reshape(-1, 2)
+        keep = arr[:, 0] < nb
+        np.add.at(dense[:, order.index(bone)], arr[keep, 0].astype(np.int64), arr[keep, 1])
+    top_j = np.argsort(-dense, axis=1, kind="stable")[:, :4]
+    top_w = np.take_along_axis(dense, top_j, axis=1)
+    top_w = top_w / top_w.sum(1, keepdims=True)
+    skeleton = Skeleton(order, parents, torch.tensor(local, dtype=torch.float32), rot.identity(len(order)))
+    return Character(
+        name=f"{preset}_{rig_name}",
+        skeleton=skeleton,
+        vertices=torch.from_numpy(body),
+        faces=torch.from_numpy(mh.body_triangles()),
+        skin_joints=torch.from_numpy(np.where(top_w > 0, top_j, top_j[:, :1]).astype(np.int64)),
+        skin_weights=torch.from_numpy(top_w.astype(np.float32)),
+    )

@@ -190,7 +190,7 @@ async function buildViewer(body, job, views, metrics) {
   }
   // One camera framing for all: the union of the motion's bounds in every view; following the root, the union
   // of the root-relative bounds (a tighter view that stays on the character).
-  const opts = { skeleton: false, contacts: true, penetration: true, linked: true, follow: true };
+  const opts = { skeleton: false, contacts: true, penetration: true, linked: true, follow: true, focus: '' };
   const bounds = loaded.map((v) => v.motionBounds());
   const frameAll = () => {
     if (!loaded.length) return;
@@ -246,10 +246,13 @@ async function buildViewer(body, job, views, metrics) {
   const hasPen = Boolean(metrics.penetration.before || metrics.penetration.after);
   const hasContacts = Boolean(metrics.contacts.pairs.length || metrics.contacts.vertexPairs
     || Object.keys(metrics.contacts.feet.before).length || Object.keys(metrics.contacts.feet.after).length);
+  const focusBone = (name, view) => (opts.focus ? boneFor(view, metrics.mapping[name === 'source' ? 'source' : 'target'], opts.focus) : null);
   const applyFrame = (f) => {
-    for (const m of Object.values(mv)) {
+    for (const [name, m] of Object.entries(mv)) {
       m.view.setFrame(f);
-      m.view.follow(opts.follow);
+      const bone = focusBone(name, m.view);
+      if (bone) m.view.focusOn(bone, FOCUS_DISTANCE);
+      else m.view.follow(opts.follow);
       m.fig.querySelector('.view-frame').textContent = `frame ${m.view.frame}`;
     }
     updateOverlays(mv, metrics, f, opts);
@@ -262,6 +265,11 @@ async function buildViewer(body, job, views, metrics) {
     { id: 'follow', label: 'Follow', checked: opts.follow, title: 'Cameras follow each character (off: one fixed camera over the whole motion)', onChange: (on) => { opts.follow = on; timeline.pause(); frameAll(); applyFrame(timeline.frame); } },
     { id: 'linked', label: 'Link cameras', checked: opts.linked, title: 'Orbit all views together', onChange: (on) => { opts.linked = on; if (on && loaded.length) for (const o of loaded.slice(1)) o.copyCamera(loaded[0], opts.follow); } },
   ]);
+  mountFocus(body.querySelector('.controls-bar'), (joint) => {
+    opts.focus = joint;
+    if (!joint) frameAll();
+    applyFrame(timeline.frame);
+  });
   timeline.on((f) => { applyFrame(f); updateControls(); });
   applyFrame(0);
   const unbindKeys = bindKeys(timeline);
@@ -285,7 +293,11 @@ async function buildViewer(body, job, views, metrics) {
       const out = {};
       for (const v of VIEWS) {
         const m = mv[v.name];
-        out[v.name] = m ? { loaded: true, frame: m.view.frame, renders: m.view.renders } : { loaded: false };
+        if (!m) { out[v.name] = { loaded: false }; continue; }
+        const cam = m.view.camera.position.distanceTo(m.view.controls.target);
+        const bone = focusBone(v.name, m.view);
+        const offset = bone ? bone.getWorldPosition(new Vector3()).distanceTo(m.view.controls.target) : null;
+        out[v.name] = { loaded: true, frame: m.view.frame, renders: m.view.renders, camera: { distance: cam, focus: opts.focus, offset } };
       }
       return out;
     },
@@ -307,6 +319,26 @@ async function buildViewer(body, job, views, metrics) {
     for (const v of loaded) v.dispose();
     if (window.__viewer?.timeline === timeline) delete window.__viewer;
   };
+}
+
+// The focus menu: a close camera on one joint in every view (fingers are judged on the hands).
+const FOCUS_DISTANCE = 0.35;
+const FOCUS = [['', 'Whole body'], ['LeftHand', 'Left hand'], ['RightHand', 'Right hand'], ['Head', 'Head'],
+  ['LeftFoot', 'Left foot'], ['RightFoot', 'Right foot']];
+
+/** The bone of canonical joint `canon` in a view: by its own name, else by the mapping report's joint name. */
+function boneFor(view, mapping, canon) {
+  return view.bone(canon) || view.bone(mapping?.[canon]);
+}
+
+/** Adds the focus menu to the controls bar; `onChange(joint)` with '' for the whole body. */
+function mountFocus(bar, onChange) {
+  const label = document.createElement('label');
+  label.className = 'focus';
+  label.title = 'Close camera on one joint in every view (the hands: to judge the fingers)';
+  label.innerHTML = `focus <select data-act="focus">${FOCUS.map(([v, t]) => `<option value="${v}">${t}</option>`).join('')}</select>`;
+  label.querySelector('select').addEventListener('change', (e) => onChange(e.target.value));
+  bar.appendChild(label);
 }
 
 /** Contact markers and penetration highlights of frame `f` in every view. */

@@ -254,8 +254,24 @@ export function assetInfoHtml(asset) {
     ${rows ? `<details class="mapping"><summary>Joint mapping: ${Object.keys(joints).length} of 22 canonical joints${overall ? `, confidence ${overall}` : ''}${missing.length ? ` · missing ${missing.length}` : ''}</summary>
       <table><thead><tr><th>canonical</th><th>joint in file</th><th>conf.</th><th>by</th></tr></thead><tbody>${rows}</tbody></table>
       ${missing.length ? `<p>Missing: ${missing.join(', ')}</p>` : ''}</details>` : ''}
+    ${extrasHtml(m.extras)}
     ${Array.isArray(i.joints) && i.joints.length ? `<details class="joints"><summary>All ${i.joints.length} joints</summary><p>${i.joints.map((j) => `<code>${esc(j)}</code>`).join(' ')}</p></details>` : ''}
     ${warnings.length ? `<ul class="warnings">${warnings.map((w) => `<li>${esc(w)}</li>`).join('')}</ul>` : '<p class="ok">No warnings.</p>'}`;
+}
+
+/** The extra joints of a mapping report (fingers, toes, twist bones): joint, confidence, how found, twist share. */
+export function extrasHtml(extras) {
+  const entries = Object.entries(extras || {});
+  if (!entries.length) return '<p class="extras-none">No fingers, toes or twist bones found: hands and feet are carried as single joints.</p>';
+  const count = (kind) => entries.filter(([, v]) => v?.kind === kind).length;
+  const rows = entries.map(([name, v]) => {
+    const conf = typeof v?.confidence === 'number' ? v.confidence : null;
+    const cls = conf === null ? '' : conf >= 0.9 ? 'good' : conf >= 0.7 ? 'fair' : 'poor';
+    const share = typeof v?.share === 'number' ? ` · share ${formatNumber(v.share)}` : '';
+    return `<tr class="${cls}" data-extra="${esc(name)}"><td>${esc(name)}</td><td><code>${esc(v?.joint ?? '')}</code></td><td>${conf === null ? '' : Math.round(conf * 100) + '%'}</td><td>${esc(v?.method ?? '')}${share}</td></tr>`;
+  }).join('');
+  return `<details class="mapping extras"><summary>Fingers, toes, twist bones: ${count('finger')} finger, ${count('toe')} toe, ${count('twist')} twist joints</summary>
+      <table><thead><tr><th>extra joint</th><th>joint in file</th><th>conf.</th><th>by</th></tr></thead><tbody>${rows}</tbody></table></details>`;
 }
 
 /** The stage switches, in pipeline order, from /v1/info (the service's one list of stages). */

@@ -285,6 +285,24 @@ export class ModelView {
     this.dirty = true;
   }
 
+  /**
+   * Aim the camera at `object` (a bone) from `distance` metres, keeping the current viewing direction, so a joint
+   * such as a hand fills the view (call after setFrame to stay on it while it moves). Returns the bone's position.
+   */
+  focusOn(object, distance) {
+    const at = object.getWorldPosition(new Vector3());
+    const dir = this.camera.position.clone().sub(this.controls.target);
+    if (dir.lengthSq() < 1e-12) dir.set(0, 0.2, 1);
+    dir.setLength(distance);
+    this.controls.target.copy(at);
+    this.camera.position.copy(at).add(dir);
+    this.camera.near = Math.max(0.005, distance / 50);
+    this.camera.far = Math.max(50, distance * 100);
+    this.camera.updateProjectionMatrix();
+    this.dirty = true;
+    return at;
+  }
+
   /** After the user panned: the root-relative target becomes the new reference. */
   resetFollow() {
     if (this.followOffset) this.followOffset = null;
