@@ -99,13 +99,27 @@ def add_v1_fallback(app: FastAPI) -> None:
         return JSONResponse({"detail": f"no such API path: {path[:200]}"}, status_code=404)
 
 
+_MALFORMED_BODY = {"description": "The body could not be read (not UTF-8, or a malformed multipart body)",
+                   "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
+
+
+def _runtime_bounds(op: dict[str, Any], max_offset: int) -> None:
+    """The limits the server checks at run time, written into an operation's parameters."""
+    for param in op.get("parameters", []):
+        if param.get("in") == "query" and param.get("name") == "offset":
+            schema = param.setdefault("schema", {})
+            schema["maximum"] = min(schema.get("maximum", max_offset), max_offset)
+
+
 def true_openapi(app: FastAPI) -> dict[str, Any]:
-    """The OpenAPI document with 401 on every operation that needs a key and every 422 as ErrorOut."""
+    """The OpenAPI document with 401 on every operation that needs a key, 400 on every one with a body, every
+    422 as ErrorOut, and the run-time limits of this process's settings."""
     if app.openapi_schema:
         return app.openapi_schema
     doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
                       tags=app.openapi_tags)
     error = {"$ref": "#/components/schemas/ErrorOut"}
+    max_offset = app.state.settings.max_list_offset
     for ops in doc.get("paths", {}).values():
         for op in ops.values():
             if not isinstance(op, dict) or "responses" not in op:
@@ -114,8 +128,11 @@ def true_openapi(app: FastAPI) -> dict[str, Any]:
             if any("APIKeyHeader" in req for req in op.get("security", [])):
                 responses.setdefault("401", {"description": "Missing, unknown or revoked API key",
                                              "content": {"application/json": {"schema": error}}})
+            if "requestBody" in op:
+                responses.setdefault("400", _MALFORMED_BODY)
             if "422" in responses:
                 responses["422"]["content"] = {"application/json": {"schema": error}}
+            _runtime_bounds(op, max_offset)
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
     schemas.pop("HTTPValidationError", None)
     schemas.pop("ValidationError", None)

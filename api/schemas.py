@@ -7,6 +7,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field
 
+from retarget_core.bodies.params import BodyParams
 from retarget_core.options import RetargetOptions
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "canceled"]
@@ -98,10 +99,9 @@ class BodyCreate(BaseModel):
     )
 
     name: str | None = Field(default=None, max_length=300, description="Display name; default: made from params")
-    params: dict[str, Any] = Field(
-        default_factory=dict,
-        description="Fields of retarget_core.bodies.makehuman.BodyParams (gender, weight, muscle, height, "
-        "proportions...); checked by the worker, errors come back as 422",
+    params: BodyParams = Field(
+        default_factory=BodyParams,
+        description="The body's shape (retarget_core.bodies.params.BodyParams); fields left out keep their defaults",
     )
 
 

@@ -13,6 +13,7 @@ from api.queue import TASK_MAKE_BODY
 from api.routing import SessionRoute
 from api.schemas import AssetOut, BodyCreate, ErrorOut
 from api.services.assets import answer_asset, insert_asset, replayed_asset
+from api.uploads import safe_filename
 from api.worker_calls import WorkerCallFailed, WorkerUnavailable, call_worker
 
 router = APIRouter(prefix="/v1/characters", tags=["characters"], route_class=SessionRoute)
@@ -37,8 +38,9 @@ async def make_body(body: BodyCreate, response: Response, key: CurrentKey, setti
     earlier = await run_in_threadpool(replayed_asset, url, key.id, idempotency_key, scope, fp)
     if earlier is not None:
         return answer_asset(response, earlier, True)
+    params = body.params.model_dump(exclude_unset=True)
     try:
-        result = await call_worker(celery, url, TASK_MAKE_BODY, {"params": body.params},
+        result = await call_worker(celery, url, TASK_MAKE_BODY, {"params": params},
                                    settings.inspect_timeout_seconds)
     except WorkerCallFailed as exc:
         raise HTTPException(422, str(exc)) from exc
@@ -48,7 +50,7 @@ async def make_body(body: BodyCreate, response: Response, key: CurrentKey, setti
     out, replayed = await run_in_threadpool(
         insert_asset, url, (idempotency_key, scope, fp) if idempotency_key else None,
         id=new_id("chr"), kind="character", owner_id=key.id, origin="generated", name=name[:300],
-        filename=f"{name[:200]}.glb", format="glb", sha256=result["sha256"], size_bytes=result["size_bytes"],
-        info=result["info"], params=result.get("params", body.params),
+        filename=safe_filename(f"{name[:200]}.glb") or "body.glb", format="glb", sha256=result["sha256"], size_bytes=result["size_bytes"],
+        info=result["info"], params=result.get("params", params),
     )
     return answer_asset(response, out, replayed)

@@ -405,7 +405,7 @@ def test_make_a_body_from_parameters(api_env: ApiEnv) -> None:
     from worker.assets import answer
 
     def handler(kwargs: dict[str, Any]) -> None:
-        if kwargs["params"].get("height", 1.7) > 2.5:
+        if kwargs["params"].get("height", 1.7) > 2.3:
             answer(api_env.settings, kwargs["call_id"], error="invalid body parameters: height: too tall")
         else:
             answer(api_env.settings, kwargs["call_id"], {"sha256": "ab" * 32, "size_bytes": 10,
@@ -419,8 +419,10 @@ def test_make_a_body_from_parameters(api_env: ApiEnv) -> None:
     assert body["origin"] == "generated" and body["builtin"] is False and body["params"] == {"height": 1.8}
     assert body["format"] == "glb" and body["info"]["height_m"] == 1.8
     assert api_env.client.get(f"/v1/characters/{body['id']}", headers=api_env.key("b")).status_code == 404
-    r = api_env.client.post("/v1/characters/builtin", headers=h, json={"params": {"height": 3.0}})
-    assert r.status_code == 422 and r.json()["detail"] == "invalid body parameters: height: too tall"
+    r = api_env.client.post("/v1/characters/builtin", headers=h, json={"params": {"height": 2.4}})
+    assert r.status_code == 422 and r.json()["detail"] == "invalid body parameters: height: too tall"  # worker's
+    r = api_env.client.post("/v1/characters/builtin", headers=h, json={"params": {"height": 3.0, "tail": 1}})
+    assert r.status_code == 422 and "params.height" in r.json()["detail"] and "params.tail" in r.json()["detail"]
 
 
 def test_unsafe_upload_file_names_are_cleaned_or_dropped(api_env: ApiEnv) -> None:

@@ -1,49 +1,186 @@
-"""A bounded schema fuzz run (schemathesis) against the real service: generated requests for every operation of
-the OpenAPI document, with a key, and every answer checked: no server error, a status code and content type the
-document lists, and a body that matches its documented schema. About a minute (RETARGET_FUZZ_EXAMPLES per
-operation)."""
+"""The OpenAPI document tells the whole truth, checked by a bounded schemathesis run against the real service.
+
+Every operation gets generated requests, with a key, in both modes, and every answer is checked: no server error;
+a status code, content type and body the document lists (status code, content type and response schema
+conformance); a request the schema allows is accepted (positive data acceptance) and one it forbids is refused
+(negative data rejection). Every method a path does not list answers 405 with an ``Allow`` header naming the
+ones it does. About a minute or two (RETARGET_FUZZ_EXAMPLES per operation and mode).
+
+A schema cannot say that an id names an existing asset, that a file's bytes are a character, or that a callback
+host resolves to a public address; the positive requests that need such data get real ids (jobs on a queue no
+worker serves, so nothing runs), a real file and the allowed callback host before they are sent.
+"""
 
 from __future__ import annotations
 
+import functools
 import os
+import re
+import uuid
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import HealthCheck, Phase, assume, given, settings
+from hypothesis.errors import Unsatisfiable
 from service_harness import Service
 
 schemathesis = pytest.importorskip("schemathesis")
+from schemathesis import GenerationMode  # noqa: E402
 from schemathesis.checks import not_a_server_error  # noqa: E402
+from schemathesis.core.failures import FailureGroup  # noqa: E402
+from schemathesis.core.parameters import ParameterLocation  # noqa: E402
 from schemathesis.specs.openapi.checks import (  # noqa: E402
     content_type_conformance,
+    negative_data_rejection,
+    positive_data_acceptance,
     response_schema_conformance,
     status_code_conformance,
 )
 
 pytestmark = pytest.mark.service
 
-EXAMPLES = int(os.environ.get("RETARGET_FUZZ_EXAMPLES", "25"))
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
+EXAMPLES = int(os.environ.get("RETARGET_FUZZ_EXAMPLES", "15"))
+CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
+          negative_data_rejection, positive_data_acceptance]
+METHODS = ("GET", "POST", "PUT", "PATCH", "DELETE")
+SAMPLES = Path(__file__).resolve().parents[2] / "retarget_core" / "data" / "samples"
+CLIP_FRAMES = 100  # the sample walk has more
+CALLBACK = "http://127.0.0.1:9/fuzz-hook"  # the test service allows 127.0.0.1 as a callback host
 
 
-def test_fuzzed_requests_get_documented_answers(service: Service) -> None:
-    schema = schemathesis.openapi.from_url(f"{service.base_url}/openapi.json")
-    key = service.key("fuzz")
+def _negated(case: Any, location: ParameterLocation) -> bool:
+    component = case.meta.components.get(location) if case.meta is not None else None
+    return component is not None and component.mode.is_negative
+
+
+def real_data(motion: str, character: str) -> Callable[[Any, bool], Any]:
+    """A map over generated cases: requests that name assets or callbacks get real ones (positive cases), and an
+    Idempotency-Key is fresh unless it is the part made invalid (a reused key replays or is refused)."""
+
+    def fill(case: Any, positive: bool) -> Any:
+        if case.headers and "Idempotency-Key" in case.headers and not _negated(case, ParameterLocation.HEADER):
+            case.headers["Idempotency-Key"] = str(uuid.uuid4())
+        op = case.operation
+        if op.method.upper() != "POST" or not positive:
+            return case
+        body = dict(case.body) if isinstance(case.body, dict) else None
+        if op.path in ("/v1/jobs", "/v1/batches") and body is not None:
+            if op.path == "/v1/jobs":
+                body.update(motion_id=motion, target_character_id=character)
+            else:
+                body.update(motion_ids=[motion], target_character_ids=[character])
+            body.update(queue="gpu")  # no worker serves it: accepted, never run
+            body.pop("source_character_id", None)
+            options = body.get("options")
+            if isinstance(options, dict):  # a frame range inside the clip, end after start: data, not schema
+                options["frame_start"] = options.get("frame_start", 0) % CLIP_FRAMES
+                if options.get("frame_end") is not None:
+                    options["frame_end"] = options["frame_start"] + 1 + options["frame_end"] % CLIP_FRAMES
+        if body is not None:
+            if body.get("callback_url"):
+                body["callback_url"] = CALLBACK
+            case.body = body
+        return case
+
+    return fill
+
+
+def real_file(case: Any, files: dict[str, bytes]) -> dict[str, Any]:
+    """For a positive upload, the request with a real file in place of the generated bytes (sent by the caller:
+    a changed body would read as schema-invalid to schemathesis, which re-checks cases it did not make)."""
+    data = files.get(case.operation.path)
+    if data is None or case.operation.method.upper() != "POST":
+        return {}
+    if isinstance(case.body, dict):
+        name = case.body.get("name")
+        return {"files": {"file": ("upload", data)}, "data": {"name": name} if isinstance(name, str) else {}}
+    return {"data": data}
+
+
+def fuzz(base_url: str, key: dict[str, str], fill: Callable[[Any, bool], Any], files: dict[str, bytes],
+         examples: int) -> tuple[int, list[str]]:
+    """Generated requests for every operation in both modes; the number of operations and the failures."""
+    schema = schemathesis.openapi.from_url(f"{base_url}/openapi.json")
+    schema.config.generation.update(with_security_parameters=False)  # the key is the caller's, always sent
     failures: list[str] = []
     operations = 0
     for result in schema.get_all_operations():
         operation = result.ok()
         operations += 1
+        for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
 
-        @given(case=operation.as_strategy())
-        @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
-                  phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
-        def run(case: Any) -> None:
+            positive = mode is GenerationMode.POSITIVE
+
+            @given(case=operation.as_strategy(generation_mode=mode).map(functools.partial(fill, positive=positive)))
+            @settings(max_examples=examples, deadline=None, derandomize=True, database=None,
+                      phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+            def run(case: Any) -> None:
+                # a draw whose data is not of the mode asked for (nothing could be made invalid) tests nothing here
+                assume(case.meta.generation.mode.is_positive == (mode is GenerationMode.POSITIVE))  # noqa: B023
+                try:
+                    extra = real_file(case, files) if mode is GenerationMode.POSITIVE else {}  # noqa: B023
+                    case.call_and_validate(headers=key, checks=CHECKS, timeout=60, **extra)
+                except (Exception, FailureGroup) as exc:  # collect every operation's failures, not only the first
+                    failures.append(f"{case.method} {case.formatted_path} ({case.meta.generation.mode}): {str(exc)[:600]}")
+
             try:
-                case.call_and_validate(headers=key, checks=CHECKS, timeout=60)
-            except Exception as exc:  # collect every operation's failures, not only the first
-                failures.append(f"{case.method} {case.formatted_path}: {str(exc)[:400]}")
+                run()
+            except Unsatisfiable:  # an operation without inputs has no invalid request to make
+                assert mode is GenerationMode.NEGATIVE, operation.label
+    return operations, failures
 
-        run()
+
+def undocumented_methods(base_url: str, key: dict[str, str]) -> tuple[int, list[str]]:
+    """Every path with every method it does not list: 405 with an Allow header naming exactly the listed ones (a
+    concrete path such as /v1/characters/builtin also matches /v1/characters/{asset_id}: their union)."""
+    doc = httpx.get(f"{base_url}/openapi.json").json()
+    templates = {re.compile("^" + re.sub(r"\\{[^/]+\\}", "[^/]+", re.escape(p)) + "$"): {m.upper() for m in ops}
+                 for p, ops in doc["paths"].items()}
+    problems: list[str] = []
+    probes = 0
+    for path in doc["paths"]:
+        concrete = path.replace("{", "x").replace("}", "")
+        listed = set().union(*(methods for t, methods in templates.items() if t.match(concrete))) & set(METHODS)
+        for method in sorted(set(METHODS) - listed):
+            probes += 1
+            r = httpx.request(method, f"{base_url}{concrete}", headers=key, timeout=30)
+            allow = {m.strip() for m in r.headers.get("allow", "").split(",") if m.strip()}
+            if r.status_code != 405 or not listed <= allow or allow - listed - {"HEAD", "OPTIONS"}:
+                problems.append(f"{method} {path}: {r.status_code}, Allow {sorted(allow)}, listed {sorted(listed)}")
+    return probes, problems
+
+
+@pytest.fixture(scope="module")
+def fuzz_client(service: Service) -> tuple[dict[str, str], str, str]:
+    """A key and its uploaded motion and character (real sample files)."""
+    key = service.key("fuzz")
+    with httpx.Client(base_url=service.base_url, headers=key, timeout=120) as http:
+        m = http.post("/v1/motions", files={"file": ("walk.bvh", (SAMPLES / "motions" / "007_03.bvh").read_bytes())})
+        c = http.post("/v1/characters", files={"file": ("body.glb", character_bytes())})
+    assert m.status_code == 201 and c.status_code == 201, (m.text, c.text)
+    return key, m.json()["id"], c.json()["id"]
+
+
+def character_bytes() -> bytes:
+    return (SAMPLES / "characters" / "mh_female_skinny.glb").read_bytes()
+
+
+def test_fuzzed_requests_get_documented_answers(service: Service, fuzz_client: tuple[dict[str, str], str, str]
+                                                ) -> None:
+    key, motion, character = fuzz_client
+    files = {"/v1/motions": (SAMPLES / "motions" / "007_03.bvh").read_bytes(), "/v1/characters": character_bytes()}
+    operations, failures = fuzz(service.base_url, key, real_data(motion, character), files, EXAMPLES)
+    with httpx.Client(base_url=service.base_url, headers=key, timeout=60) as http:  # nothing of it runs on
+        for job in http.get("/v1/jobs", params={"status": "queued", "limit": 500}).json()["items"]:
+            http.post(f"/v1/jobs/{job['id']}/cancel")
     assert operations > 20
     assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures[:20])
+
+
+def test_every_unlisted_method_answers_405_with_allow(service: Service) -> None:
+    probes, problems = undocumented_methods(service.base_url, service.key("methods"))
+    assert probes > 40
+    assert not problems, f"{len(problems)} of {probes}:\n" + "\n".join(problems[:30])
