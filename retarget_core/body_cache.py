@@ -10,10 +10,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import tempfile
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -21,11 +22,11 @@ import torch
 from retarget_core.body_parts import BodyParts, body_parts
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
-from retarget_core.energy.sdf import PartSDF, SDFParams, build_part_sdf
+from retarget_core.energy.sdf import REFERENCE_HEIGHT_M, PartSDF, SDFParams, build_part_sdf, vertex_clusters
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 """Bump when what is cached changes meaning (grid layout, parameters): old files are then ignored."""
 MEMORY_ENTRIES = 16
 CACHE_DIR_ENV = "RETARGET_CACHE_DIR"
@@ -59,6 +60,8 @@ def character_key(character: Character, mapping: JointMapping) -> str:
               sk.rest_rotations, sk.rest_translations):  # fmt: skip
         h.update(t.detach().contiguous().numpy().tobytes())
     h.update(json.dumps([sk.parents, sorted(mapping.joints.items())]).encode())
+    if character.has_accessories:  # the roles decide which triangles make the part volumes
+        h.update(character.body_vertices.numpy().tobytes())
     return h.hexdigest()
 
 
@@ -102,10 +105,29 @@ def body_assets(character: Character, mapping: JointMapping) -> tuple[BodyAssets
     if path is not None and path.is_file() and (found := _read(path)) is not None:
         return _remember(BodyAssets(key, *found)), True
     parts = body_parts(character, mapping)
-    sdf = build_part_sdf(character, parts)
+    sdf = body_sdf(character, parts)
     if path is not None:
         _write(path, parts, sdf)
     return _remember(BodyAssets(key, parts, sdf)), False
+
+
+def body_sdf(character: Character, parts: BodyParts) -> PartSDF:
+    """The part SDF grids of the body meshes only: accessory triangles make no part volume, and accessory vertices
+    are put in clusters of their own that are never sampled (radius -inf: no culling test passes), so neither
+    the metrics nor the collision stage test them or spend time on them."""
+    if parts.body is None:
+        return build_part_sdf(character, parts)
+    sdf = build_part_sdf(replace(character, faces=parts.faces), parts)
+    if sdf.clusters is not None:
+        rest = character.vertices.float()
+        apart = parts.vertex_part + parts.num_parts * (~parts.body).long()  # accessories never share a cluster
+        size = SDFParams().cluster_m * character.height / REFERENCE_HEIGHT_M
+        cl = vertex_clusters(rest, apart, size)
+        accessory = cl.part >= parts.num_parts
+        cl.part = cl.part % parts.num_parts
+        cl.radius = torch.where(accessory, torch.full_like(cl.radius, -math.inf), cl.radius)
+        sdf.clusters = cl
+    return sdf
 
 
 def part_sdf_for(character: Character, mapping: JointMapping) -> tuple[BodyParts, PartSDF]:
@@ -119,4 +141,4 @@ def clear_memory() -> None:
     _MEMORY.clear()
 
 
-__all__ = ["BodyAssets", "body_assets", "cache_dir", "character_key", "clear_memory", "part_sdf_for"]
+__all__ = ["BodyAssets", "body_assets", "body_sdf", "cache_dir", "character_key", "clear_memory", "part_sdf_for"]

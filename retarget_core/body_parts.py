@@ -79,6 +79,10 @@ class BodyParts:
     weights: ``(V, S)`` segment skinning weights (sum of the weights of the joints assigned to the segment).
     vertex_part: ``(V,)`` dominant segment of each vertex.
     face_part: ``(T,)`` dominant segment of each triangle (largest summed weight of its three vertices).
+    faces: ``(T, 3)`` the body's triangles: the character's, less those of accessory meshes
+        (:attr:`Character.meshes`); the part volumes (SDF grids, hand distances) are made of these.
+    body: ``(V,)`` bool, False on accessory vertices: they keep a dominant segment (``vertex_part``) but belong
+        to no group and no part's vertex list, so no measure tests them; None: every vertex is body.
     """
 
     names: list[str]
@@ -89,6 +93,7 @@ class BodyParts:
     vertex_part: Tensor
     face_part: Tensor
     faces: Tensor
+    body: Tensor | None = None
     _index: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -107,17 +112,25 @@ class BodyParts:
         return self._index.get(name)
 
     def group(self, name: str, threshold: float = GROUP_THRESHOLD) -> Tensor:
-        """Vertex indices ``(N,)`` whose weight for segment ``name`` is at least ``threshold``."""
-        return torch.nonzero(self.weights[:, self.index(name)] >= threshold).flatten()
+        """Body vertex indices ``(N,)`` whose weight for segment ``name`` is at least ``threshold``."""
+        return torch.nonzero(self._body_only(self.weights[:, self.index(name)] >= threshold)).flatten()
 
     def group_faces(self, name: str, threshold: float = GROUP_THRESHOLD) -> Tensor:
         """Triangles ``(M, 3)`` whose three vertices are all in :meth:`group`."""
-        inside = self.weights[:, self.index(name)] >= threshold
+        inside = self._body_only(self.weights[:, self.index(name)] >= threshold)
         return self.faces[inside[self.faces].all(dim=1)]
 
     def part_vertices(self, s: int) -> Tensor:
-        """Vertex indices ``(N,)`` whose dominant segment is ``s``."""
-        return torch.nonzero(self.vertex_part == s).flatten()
+        """Body vertex indices ``(N,)`` whose dominant segment is ``s``."""
+        return torch.nonzero(self._body_only(self.vertex_part == s)).flatten()
+
+    def _body_only(self, mask: Tensor) -> Tensor:
+        return mask if self.body is None else mask & self.body
+
+    @property
+    def body_count(self) -> int:
+        """Number of body vertices (all vertices when the character has no accessory mesh)."""
+        return int(self.vertex_part.shape[0]) if self.body is None else int(self.body.sum())
 
     def adjacency(self) -> Tensor:
         """``(S, S)`` bool: parent/child segment pairs (symmetric)."""
@@ -166,7 +179,8 @@ def body_parts(character: Character, mapping: JointMapping) -> BodyParts:
     keep = joint_to_seg >= 0
     weights.index_add_(1, joint_to_seg[keep], dense[:, keep])
     vertex_part = weights.argmax(dim=1)
-    face_w = weights[character.faces].sum(dim=1)  # (T, S)
+    faces = character.body_faces()
+    face_w = weights[faces].sum(dim=1)  # (T, S)
     face_part = face_w.argmax(dim=1)
     parent = []
     for n in names:
@@ -176,7 +190,9 @@ def body_parts(character: Character, mapping: JointMapping) -> BodyParts:
         p = index[seg_of_joint[j]] if j >= 0 and seg_of_joint[j] is not None else -1  # type: ignore[index]
         parent.append(p if p != index[n] else -1)
     cluster = [CLUSTERS.index(CLUSTER_OF[n]) for n in names]
-    return BodyParts(names, [mapping.joints[n] for n in names], parent, cluster, weights, vertex_part, face_part, character.faces)
+    body = character.body_vertices if character.has_accessories else None
+    return BodyParts(names, [mapping.joints[n] for n in names], parent, cluster, weights, vertex_part, face_part, faces,
+                     body)  # fmt: skip
 
 
 def mapping_by_name(names: list[str]) -> JointMapping:

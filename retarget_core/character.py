@@ -22,6 +22,33 @@ class Material:
     roughness: float = 0.8
 
 
+MESH_ROLES: tuple[str, ...] = ("body", "accessory")
+
+
+@dataclass
+class MeshInfo:
+    """One mesh of a character and the role decided for it (docs/meshes.md).
+
+    role: ``body`` (measured and tested for penetration) or ``accessory`` (follows the skin, never tested);
+    reason: one sentence saying which rule decided; vertices, faces: its counts; start: its first vertex in the
+    merged mesh (its vertices are ``start .. start + vertices``)."""
+
+    name: str
+    role: str
+    reason: str
+    vertices: int
+    faces: int
+    start: int = 0
+
+    def __post_init__(self) -> None:
+        if self.role not in MESH_ROLES:
+            raise ValueError(f"mesh role must be one of {MESH_ROLES}, not {self.role!r}")
+
+    def as_dict(self) -> dict[str, object]:
+        return {"name": self.name, "role": self.role, "reason": self.reason, "vertices": self.vertices,
+                "faces": self.faces}  # fmt: skip
+
+
 @dataclass
 class Character:
     """A skinned body.
@@ -31,6 +58,8 @@ class Character:
     skin_joints: ``(V, K)`` joint indices into ``skeleton`` (int64).
     skin_weights: ``(V, K)`` weights, each row summing to 1.
     uvs: ``(V, 2)`` texture coordinates or None.
+    meshes: the meshes merged into this one, in vertex order, with their roles (empty: one body mesh).
+    mesh_of_vertex: ``(V,)`` index into ``meshes`` of each vertex, or None when ``meshes`` is empty.
     """
 
     name: str
@@ -41,6 +70,8 @@ class Character:
     skin_weights: Tensor
     uvs: Tensor | None = None
     material: Material = field(default_factory=Material)
+    meshes: list[MeshInfo] = field(default_factory=list)
+    mesh_of_vertex: Tensor | None = None
 
     def __post_init__(self) -> None:
         v = self.vertices.shape[0]
@@ -48,6 +79,27 @@ class Character:
             raise ValueError("vertices must be (V, 3) and faces (T, 3)")
         if self.skin_joints.shape != self.skin_weights.shape or self.skin_joints.shape[0] != v:
             raise ValueError("skin_joints and skin_weights must both be (V, K)")
+        if self.meshes and (self.mesh_of_vertex is None or self.mesh_of_vertex.shape != (v,)):
+            raise ValueError("meshes need mesh_of_vertex (V,)")
+
+    @property
+    def body_vertices(self) -> Tensor:
+        """``(V,)`` bool: vertices of the meshes whose role is ``body`` (all of them without mesh roles)."""
+        if not self.meshes or self.mesh_of_vertex is None:
+            return torch.ones(self.num_vertices, dtype=torch.bool)
+        body = torch.tensor([m.role == "body" for m in self.meshes], dtype=torch.bool)
+        return body.index_select(0, self.mesh_of_vertex)
+
+    @property
+    def has_accessories(self) -> bool:
+        """Some mesh is an accessory (see :class:`MeshInfo`)."""
+        return any(m.role != "body" for m in self.meshes)
+
+    def body_faces(self) -> Tensor:
+        """``(T_b, 3)`` the triangles whose three vertices are body vertices."""
+        if not self.has_accessories:
+            return self.faces
+        return self.faces[self.body_vertices[self.faces].all(dim=1)]
 
     @property
     def num_vertices(self) -> int:

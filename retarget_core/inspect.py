@@ -38,6 +38,7 @@ def inspect_file(path: str | Path, kind: Literal["character", "motion"]) -> dict
         "joint_count": c.skeleton.num_joints,
         "vertices": c.num_vertices,
         "triangles": int(c.faces.shape[0]),
+        "meshes": [m.as_dict() for m in c.meshes],  # roles per mesh (docs/meshes.md)
         "height_m": round(c.height, 4),
         "mapping": lc.mapping.report(c.skeleton.names),
         "normalization": lc.normalization.as_dict(),

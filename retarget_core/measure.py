@@ -194,6 +194,7 @@ def measure_job(
         report = build_metrics_report(
             before.name, target.name, target.height, before_metrics, after_metrics, source_contacts_model(found, constraints),
             {k: round(v, 4) for k, v in timings.items()}, notes, context, include_series, source,
+            [m.as_dict() for m in target.meshes],
         )  # fmt: skip
         return JobMeasurement(report, found, constraints, before_measures, after_measures)
 

@@ -295,6 +295,6 @@ def normalize_character(
     skeleton = transform_roots(sk, turn, shift, report.scale)
     out = Character(
         character.name, skeleton, verts + shift, character.faces, character.skin_joints, character.skin_weights,
-        character.uvs, character.material,
+        character.uvs, character.material, character.meshes, character.mesh_of_vertex,
     )  # fmt: skip
     return out, report

@@ -32,6 +32,7 @@ from retarget_core.config import get_settings
 from retarget_core.errors import InvalidFileError, LimitExceededError, UnsupportedFileError
 from retarget_core.io.accessors import GltfData, check_extensions, require_finite
 from retarget_core.io.vrm import humanoid_canonical, humanoid_extras
+from retarget_core.mesh_roles import MeshSpan, with_mesh_roles
 from retarget_core.motion import Motion
 from retarget_core.skeleton import Skeleton
 
@@ -493,6 +494,7 @@ def _build_character(
         nodes, _with_ancestors(nodes, set(range(len(nodes.parents)))), nodes.t[None], nodes.q[None], nodes.s[None]
     )
     parts = _MeshParts()
+    spans: list[MeshSpan] = []
     any_skinned = False
     for n in nodes.order:
         node = data.item("nodes", n, f"nodes[{n}]")
@@ -510,6 +512,7 @@ def _build_character(
             if rigid_joint is None:
                 notes.append(f"mesh node {nodes.names[n] or n} is not skinned and not under a joint: skipped")
                 continue
+        span_start = (parts.num_vertices, parts.num_faces)
         for p, prim in enumerate(prims):
             where = f"meshes[{node['mesh']}].primitives[{p}]"
             got = _read_primitive(data, prim, where, parts, notes)
@@ -544,6 +547,10 @@ def _build_character(
             parts.num_faces += len(tri)
             if parts.material is None and isinstance(prim, dict) and "material" in prim:
                 parts.material = data.index(prim["material"], len(data.array("materials")), f"{where}.material")
+        if parts.num_vertices > span_start[0]:  # one span per mesh node, for the mesh roles (mesh_roles.py)
+            label = str(mesh.get("name") or nodes.names[n] or f"mesh {node['mesh']}")
+            spans.append(MeshSpan(label, span_start[0], parts.num_vertices - span_start[0], span_start[1],
+                                  parts.num_faces - span_start[1]))  # fmt: skip
     if not any_skinned:
         if parts.vertices:
             notes.append("no skinned mesh: rigid meshes under joints are not a character on their own")
@@ -564,7 +571,7 @@ def _build_character(
         raise LimitExceededError(
             f"{parts.num_vertices} vertices, over the limit of {settings.max_vertices}", data.label
         )
-    return Character(
+    character = Character(
         name=name,
         skeleton=skeleton,
         vertices=torch.from_numpy(np.concatenate(parts.vertices)).float(),
@@ -574,6 +581,7 @@ def _build_character(
         uvs=uvs,
         material=_read_material(data, parts.material, notes),
     )
+    return with_mesh_roles(character, spans)
 
 
 def _read_material(data: GltfData, index: int | None, notes: list[str]) -> Material:

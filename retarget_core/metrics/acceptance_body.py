@@ -160,7 +160,8 @@ def build_acceptance_body(character: Character, mapping: JointMapping) -> Accept
     part_of_vertex = cluster[vertex_seg]
     face_part = cluster[parts.face_part.numpy()]
     verts = character.vertices.detach().double().numpy()
-    faces = character.faces.numpy().astype(np.int64)
+    faces = parts.faces.numpy().astype(np.int64)  # the body meshes' triangles (docs/meshes.md)
+    body = np.ones(len(verts), dtype=bool) if parts.body is None else parts.body.numpy()
     s = character.height / REFERENCE_HEIGHT_M
     closed: list[ClosedPart | None] = []
     for p, name in enumerate(PARTS):
@@ -170,7 +171,7 @@ def build_acceptance_body(character: Character, mapping: JointMapping) -> Accept
     def seg_vertices(names: tuple[str, ...]) -> np.ndarray:
         found = [parts.find(n) for n in names]
         idx = [i for i in found if i is not None]
-        return np.nonzero(np.isin(vertex_seg, idx))[0]
+        return np.nonzero(np.isin(vertex_seg, idx) & body)[0]
 
     hands = {"left": seg_vertices(("LeftHand",)), "right": seg_vertices(("RightHand",))}
     feet = {"left": seg_vertices(("LeftFoot", "LeftToeBase")), "right": seg_vertices(("RightFoot", "RightToeBase"))}
@@ -181,7 +182,7 @@ def build_acceptance_body(character: Character, mapping: JointMapping) -> Accept
     for k, h in enumerate(HANDS):
         hand_of_vertex[hands[h]] = k
     # Seam-band vertices never count as penetrating: only the others (and the hands, for contacts) are queried.
-    queried = np.nonzero(~seam | (hand_of_vertex >= 0))[0]
+    queried = np.nonzero((~seam | (hand_of_vertex >= 0)) & body)[0]
     clusters = vertex_clusters(character.vertices.detach().float()[queried], parts.vertex_part[queried], CLUSTER_M * s)
     members = clusters.members.numpy()
     members = np.where(members >= 0, queried[np.clip(members, 0, None)], -1)

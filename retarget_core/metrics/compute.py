@@ -56,12 +56,15 @@ class MetricParams:
 class ClipMeasures:
     """Per-frame measurements of one motion on one character (SI units, on the body's own scale).
 
+    num_vertices: body vertices (accessory meshes are not measured: their depth stays 0 and the shares are of
+    body vertices; docs/meshes.md); vertex_depth still has a column per mesh vertex.
+
     joints: ``(F, C, 3)`` world positions of the mapped canonical joints (``joint_names``).
     vertex_depth: ``(F, V)`` weighted penetration depth of every vertex (m).
     penetration_volume: ``(F,)`` sum of vertex area x depth (m^3).
     limb_distance: ``(F, 4)`` paper 2's signed distance of each limb's end segments to the nearest segment of
         another cluster (m, capped at the grid margin), limbs in :data:`LIMBS` order.
-    lowest_vertex: ``(F,)`` height of the lowest vertex (m).
+    lowest_vertex: ``(F,)`` height of the lowest body vertex (m).
     contact_distance: ``(M,)`` distance of each contact constraint's vertex pair (m); contact_frame ``(M,)``.
     feet: foot contacts detected on this motion.
     vertex_cluster: ``(V,)`` index into :data:`CLUSTERS` of each vertex's part (its dominant segment's
@@ -137,7 +140,7 @@ def measure_clip(
     f_n, v_n = motion.num_frames, character.num_vertices
     names = [c for c in CANONICAL_JOINTS if c in mapping.joints]
     idx = torch.tensor([mapping.joints[c] for c in names])
-    out = _FrameMeasures(f_n, v_n)
+    out = _FrameMeasures(f_n, v_n, parts.body)
     hands = None
     if (contacts is not None and contacts.count) or source_hand_distances is not None:
         hands = ContactHandMeter(character, parts, contacts, source_hand_distances, f_n)
@@ -152,7 +155,7 @@ def measure_clip(
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
         c_dist, c_frame = contact_pair_distances(character, contacts, grot, gpos, params.frame_chunk)
     return ClipMeasures(
-        motion.name, motion.fps, character.height, v_n, names, gpos[:, idx], out.depth, out.volume, out.limb,
+        motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx], out.depth, out.volume, out.limb,
         out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
         hands.result() if hands is not None else None,
     )  # fmt: skip
@@ -161,8 +164,9 @@ def measure_clip(
 class _FrameMeasures:
     """The per-frame arrays of :class:`ClipMeasures`, filled chunk by chunk of frames."""
 
-    def __init__(self, f_n: int, v_n: int) -> None:
+    def __init__(self, f_n: int, v_n: int, body: Tensor | None) -> None:
         self.depth = torch.zeros(f_n, v_n)
+        self.body = None if body is None else torch.nonzero(body).flatten()  # only these are posed and measured
         self.volume = torch.zeros(f_n)
         self.limb = torch.zeros(f_n, len(LIMBS))
         self.lowest = torch.zeros(f_n)
@@ -171,9 +175,13 @@ class _FrameMeasures:
                 hands: ContactHandMeter | None, cull_hands: bool) -> None:  # fmt: skip
         """Pose and measure the frames ``frames (C,)`` whose world transforms are ``grot (C, J, 4)``, ``gpos``."""
         c = len(frames)
-        verts = character.pose_vertices(grot, gpos)
         mats = segment_matrices(character, sdf.parts, grot, gpos)
-        samples = sample_pairs(sdf, verts, mats)
+        if self.body is None:
+            verts = character.pose_vertices(grot, gpos)
+            samples = sample_pairs(sdf, verts, mats)
+        else:  # accessory meshes: the body vertices only
+            verts = character.pose_vertex_subset(self.body, grot, gpos)
+            samples = sample_pairs(sdf, verts, mats, vertices=self.body)
         d = vertex_depths(sdf, samples, c)
         self.depth[frames] = d
         self.volume[frames] = (d * sdf.vertex_area).sum(-1)
@@ -181,7 +189,13 @@ class _FrameMeasures:
         self.lowest[frames] = verts[..., 1].amin(-1)
         if hands is not None:
             cand = hand_part_candidates(sdf.parts, samples, c) if cull_hands else None
-            hands.measure(verts, frames, cand)
+            hands.measure(self._full(verts, character.num_vertices), frames, cand)
+
+    def _full(self, verts: Tensor, v_n: int) -> Tensor:
+        """Posed body vertices as ``(C, V, 3)`` in mesh order (accessory rows 0: no query reads them)."""
+        if self.body is None:
+            return verts
+        return verts.new_zeros(verts.shape[0], v_n, 3).index_copy_(1, self.body, verts)
 
     def copy(self, frames: Tensor, other: ClipMeasures, ground: float, hands: ContactHandMeter | None) -> None:
         """Copy the frames ``frames (C,)`` from ``other`` (a motion posed the same there, measured with the same
@@ -220,10 +234,13 @@ def vertex_part_clusters(parts: BodyParts) -> Tensor:
     return torch.tensor(parts.cluster, dtype=torch.long).index_select(0, parts.vertex_part)
 
 
-def penetration_by_part(vertex_depth: Tensor, vertex_cluster: Tensor, tolerance: float) -> Tensor:
-    """``(F, 6)`` per frame and part (:data:`CLUSTERS` order): the share (%) of ALL vertices that belong to that
-    part and are deeper than ``tolerance`` (m), so the six columns add up to the frame's penetrating share."""
+def penetration_by_part(vertex_depth: Tensor, vertex_cluster: Tensor, tolerance: float,
+                        count: int | None = None) -> Tensor:  # fmt: skip
+    """``(F, 6)`` per frame and part (:data:`CLUSTERS` order): the share (%) of ALL body vertices (``count``,
+    default all columns) that belong to that part and are deeper than ``tolerance`` (m), so the six columns add up
+    to the frame's penetrating share."""
     f_n, v_n = vertex_depth.shape
+    v_n = v_n if count is None else count
     if v_n == 0:
         return torch.zeros(f_n, len(CLUSTERS))
     hot = (vertex_depth > tolerance).float()  # (F, V)
@@ -236,7 +253,7 @@ def part_split(m: ClipMeasures, tolerance: float) -> tuple[dict[str, float] | No
     series ``penetrating_vertices_percent_<part>``; ``(None, {})`` when the vertices' parts are not known."""
     if m.vertex_cluster is None:
         return None, {}
-    per_frame = penetration_by_part(m.vertex_depth, m.vertex_cluster, tolerance)
+    per_frame = penetration_by_part(m.vertex_depth, m.vertex_cluster, tolerance, m.num_vertices)
     means = per_frame.mean(0) if m.num_frames else torch.zeros(len(CLUSTERS))
     summary = {name: round(float(means[c]), 4) for c, name in enumerate(CLUSTERS)}
     series = {f"penetrating_vertices_percent_{name}": _series(per_frame[:, c], "%") for c, name in enumerate(CLUSTERS)}
@@ -337,7 +354,8 @@ class ContactHandMeter:
         for p in torch.nonzero(need.any(dim=(0, 1))).flatten().tolist():
             rows = torch.nonzero(need[:, :, p].any(1)).flatten()
             geom = self._part_geometry(p)
-            dist[rows, :, p] = hand_part_distances(self.character, self.parts, verts[rows], geometry=geom).distance[:, :, p]
+            found = hand_part_distances(self.character, self.parts, verts[rows], geometry=geom)
+            dist[rows, :, p] = found.distance[:, :, p]
         return dist
 
     def _part_geometry(self, p: int) -> HandPartGeometry:
@@ -460,7 +478,7 @@ def summarize(
     tol = params.penetration_tolerance_m / s
     # Penetration.
     frame_max = m.vertex_depth.amax(-1) if m.num_vertices else torch.zeros(f_n)
-    pen_verts = (m.vertex_depth > tol).float().mean(-1) * 100.0
+    pen_verts = (m.vertex_depth > tol).sum(-1).float() * (100.0 / max(m.num_vertices, 1))
     pen_by_part, pen_part_series = part_split(m, tol)
     # Paper 2 collision metrics (cm^2).
     d_cur = m.limb_distance

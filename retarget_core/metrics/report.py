@@ -171,6 +171,16 @@ class SourceMetrics(BaseModel):
     warnings: list[str] = Field(default_factory=list, description="the flags' messages (also in the report's notes)")
 
 
+class MeshRole(BaseModel):
+    """One mesh of the target and the role decided for it (docs/meshes.md)."""
+
+    name: str
+    role: Literal["body", "accessory"] = Field(description="body: measured; accessory: follows the skin, not tested")
+    reason: str = Field(description="the rule that decided")
+    vertices: int
+    faces: int
+
+
 class MetricsReport(BaseModel):
     """The metrics JSON of one job (motion x target)."""
 
@@ -183,6 +193,9 @@ class MetricsReport(BaseModel):
     scale_to_180: float = Field(description="multiply a length on the target by this to get it at 1.80 m")
     source_contacts: SourceContacts = Field(default_factory=SourceContacts)
     source: SourceMetrics | None = Field(None, description="the source on its own body (what came in broken)")
+    meshes: list[MeshRole] = Field(
+        default_factory=list, description="the target's meshes and their roles (accessories are not measured)"
+    )
     before: MethodMetrics
     after: MethodMetrics | None = None
     improvement: dict[str, float | None] = Field(
@@ -216,9 +229,11 @@ def build_metrics_report(
     context: dict[str, Any] | None = None,
     include_series: bool = True,
     source: SourceMetrics | None = None,
+    meshes: list[dict[str, Any]] | None = None,
 ) -> MetricsReport:
     """The report of one job; ``improvement`` holds after minus before for the main numbers (negative is better
-    for all of them). ``source``: the source measured on its body; its warnings are added to ``notes``."""
+    for all of them). ``source``: the source measured on its body; its warnings are added to ``notes``.
+    ``meshes``: the target's meshes (:meth:`retarget_core.character.MeshInfo.as_dict`)."""
     if not include_series:
         before = MethodMetrics(summary=before.summary)
         after = MethodMetrics(summary=after.summary) if after is not None else None
@@ -236,6 +251,7 @@ def build_metrics_report(
         scale_to_180=round(1.80 / target_height_m, 6),
         source_contacts=source_contacts or SourceContacts(),
         source=source,
+        meshes=[MeshRole.model_validate(m) for m in meshes or []],
         before=before,
         after=after,
         improvement=improvement,
@@ -261,6 +277,7 @@ def read_metrics_json(path: str | Path) -> MetricsReport:
 __all__ = [
     "SCHEMA_VERSION",
     "Measure",
+    "MeshRole",
     "MethodMetrics",
     "MetricSummary",
     "MetricsReport",
