@@ -10,7 +10,7 @@ import logging
 from datetime import datetime
 
 from celery import Celery
-from sqlalchemy import update
+from sqlalchemy import ColumnElement, update
 from sqlalchemy.orm import Session
 
 from api.db import updated, utcnow
@@ -79,7 +79,7 @@ def retry(session: Session, job: Job) -> bool:
     return bool(done)
 
 
-def settle_lost(session: Session, job: Job, where: tuple[object, ...], now: datetime, max_attempts: int,
+def settle_lost(session: Session, job: Job, where: tuple[ColumnElement[bool], ...], now: datetime, max_attempts: int,
                 hard_limit_seconds: float, cause: str, sent: bool = False) -> tuple[str | None, str | None]:
     """End or repeat a running attempt whose process is gone (``where``: the conditions that it still is).
 

@@ -149,19 +149,19 @@ def time_requeue(url: str, job_id: str, attempt: int, pid: int, timeout: float) 
 def run(kills: int, timeout: float) -> dict[str, Any]:
     root = Path(tempfile.mkdtemp(prefix="requeue-bench-"))
     redis_proc, redis_url = start_redis(root)
-    url = f"sqlite:///{root / 'bench.sqlite'}"
-    upgrade(url)
-    storage = Storage(root / "data")
-    job_id = make_job(url, storage)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
-    env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
-                "RETARGET_API_DATABASE_URL": url, "REDIS_URL": redis_url, "OMP_NUM_THREADS": "1",
-                "RETARGET_API_MAX_JOB_ATTEMPTS": str(kills + 1)})
-    log = open(root / "worker.log", "wb")  # noqa: SIM115 (kept open with the process)
-    worker = subprocess.Popen([sys.executable, "-m", "worker", "--queues", "cpu", "--concurrency", "1"], cwd=REPO,
-                              env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    worker: subprocess.Popen[bytes] | None = None
     rounds: list[dict[str, Any]] = []
     try:
+        url = f"sqlite:///{root / 'bench.sqlite'}"
+        upgrade(url)
+        job_id = make_job(url, Storage(root / "data"))
+        env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
+        env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
+                    "RETARGET_API_DATABASE_URL": url, "REDIS_URL": redis_url, "OMP_NUM_THREADS": "1",
+                    "RETARGET_API_MAX_JOB_ATTEMPTS": str(kills + 1)})
+        with open(root / "worker.log", "wb") as log:
+            worker = subprocess.Popen([sys.executable, "-m", "worker", "--queues", "cpu", "--concurrency", "1"],
+                                      cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         wait_ready(url, 180)  # its queue is declared: a message sent earlier could find no binding
         make_celery(Settings(broker_url=redis_url)).send_task(TASK_RUN_JOB, kwargs={"job_id": job_id, "attempt": 1},
                                                               queue="cpu")
@@ -175,11 +175,12 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
             if took["queued_s"] is None:
                 break
     finally:
-        os.killpg(worker.pid, signal.SIGTERM)
-        try:
-            worker.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(worker.pid, signal.SIGKILL)
+        if worker is not None:
+            os.killpg(worker.pid, signal.SIGTERM)
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(worker.pid, signal.SIGKILL)
         redis_proc.terminate()
         redis_proc.wait(10)
         dispose_all()
@@ -206,6 +207,7 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=120.0, help="give up on one kill after this long")
     parser.add_argument("--out", type=Path, default=RESULT)
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up the worker and Redis when stopped
     result = run(args.kills, args.timeout)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

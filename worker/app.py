@@ -90,6 +90,30 @@ def deliver_webhook(delivery_id: str, attempt: int = 1) -> str:
 
 
 # Maintenance: the worker's own heartbeat row and the reaper, in a thread of the main worker process -----------
+class ForkGuard:
+    """Keeps the main process from forking a pool process while its maintenance thread is inside the database
+    driver: a child forked then inherits the driver's locks taken (SQLite's global mutex) and hangs on its first
+    query. A fork waits at most ``wait_seconds`` for the pass to end."""
+
+    def __init__(self, wait_seconds: float = 10.0) -> None:
+        self.lock = threading.Lock()
+        self.wait_seconds = wait_seconds
+        self._held = False
+
+    def before_fork(self) -> None:
+        self._held = self.lock.acquire(timeout=self.wait_seconds)
+
+    def after_fork(self) -> None:
+        if self._held:
+            self._held = False
+            self.lock.release()
+
+
+FORK_GUARD = ForkGuard()
+os.register_at_fork(before=FORK_GUARD.before_fork, after_in_parent=FORK_GUARD.after_fork,
+                    after_in_child=FORK_GUARD.after_fork)
+
+
 class Maintenance(threading.Thread):
     """Refreshes this worker's row (for /readyz) and runs the reaper periodically."""
 
@@ -115,12 +139,14 @@ class Maintenance(threading.Thread):
 
         while True:
             try:
-                self.beat()
-                if time.monotonic() - self._last_reap >= settings.reaper_interval_seconds:
-                    self._last_reap = time.monotonic()
-                    report = reap(settings, app)
-                    if any(vars(report).values()):
-                        log.warning("reaper: %s", report)
+                with FORK_GUARD.lock:
+                    self.beat()
+                    report = None
+                    if time.monotonic() - self._last_reap >= settings.reaper_interval_seconds:
+                        self._last_reap = time.monotonic()
+                        report = reap(settings, app)
+                if report is not None and any(vars(report).values()):
+                    log.warning("reaper: %s", report)
             except Exception:
                 log.exception("maintenance pass failed")
             if self.stop_event.wait(min(settings.heartbeat_interval_seconds, settings.reaper_interval_seconds)):
