@@ -4,12 +4,18 @@ Defaults: a 300-frame piece (at 30 fps) of CMU 02_08 (swordplay, two-hand grips)
 (13,380 vertices), the source on the built-in body sized to the clip. Prints a table and writes JSON.
 
     python benchmarks/metrics_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json]
+
+``--job``: the job's metrics stage instead (``measure_job`` as ``metrics_summary.build_metrics`` calls it, after
+a default-chain refinement of the same clip): the default path against ``every_frame=True`` (every frame and
+every hand-to-part distance measured exactly, the path before issue 20), timed, in ms per frame, and their
+reports compared (timings apart); writes ``metrics_job_benchmark.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import time
@@ -44,9 +50,14 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's own choice)")
     ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "metrics_benchmark.json")
+    ap.add_argument("--job", action="store_true", help="time the job's metrics stage, default vs every frame")
+    ap.add_argument("--repeats", type=int, default=2, help="--job: timed runs of each path (the best is kept)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.job:
+        job_metrics(args)
+        return
 
     from retarget_core.body_parts import body_parts
     from retarget_core.contacts.correspondence import build_correspondence, transfer_contacts
@@ -135,6 +146,65 @@ def main() -> None:
     args.output.write_text(json.dumps(out, indent=1))
     print(f"per job (contacts, correspondence, metrics; no file reads, SDF cached): {out['per_job_seconds_excluding_reads_and_sdf']} s")
     print(f"wrote {args.output}")
+
+
+def _numbers_differ(a: Any, b: Any, path: str = "") -> list[str]:
+    """Paths where two JSON values differ beyond float noise (relative 1e-3, absolute 2e-4)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{path}: keys {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in _numbers_differ(a[k], b[k], f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} vs {len(b)} items"]
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True)) for d in _numbers_differ(x, y, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, int | float):
+        return [] if math.isclose(a, b, rel_tol=1e-3, abs_tol=2e-4) else [f"{path}: {a} vs {b}"]
+    return [] if a == b else [f"{path}: {a!r} vs {b!r}"]
+
+
+def job_metrics(args: argparse.Namespace) -> None:
+    """``--job``: see the module doc."""
+    from retarget_core.body_cache import body_assets
+    from retarget_core.jobs import JobInputs
+    from retarget_core.loading import load_motion
+    from retarget_core.measure import measure_job, torch_threads
+    from retarget_core.metrics_summary import job_context
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import PIPELINE_THREADS, prepare, refine
+
+    src_fps = load_motion(args.motion).motion.fps
+    opts = RetargetOptions(fps=args.fps, frame_end=max(2, int(round((args.frames - 1) * src_fps / args.fps)) + 1))
+    print(f"metrics stage: {args.motion.name} on {Path(args.target).name}, {args.frames} frames, default chain")
+    with torch_threads(PIPELINE_THREADS):
+        result = refine(prepare(JobInputs(args.motion, args.target, options=opts)))
+        p = result.prepared
+        body_assets(p.source_body.character, p.source_body.mapping)  # the source body's grids, as in a job
+        frames = result.after.num_frames
+        out: dict[str, Any] = {"motion": args.motion.name, "target": p.target.character.name, "frames": frames}
+        reports = {}
+        for label, every in (("every frame (before issue 20)", True), ("default", False)):
+            best = math.inf
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                job = measure_job(
+                    p.source_body.character, p.source_body.mapping, p.source_view, p.target.character,
+                    p.target.mapping, p.before, result.after, source_contacts=p.contacts, constraints=p.constraints,
+                    context=job_context(result), notes=list(result.warnings), threads=None, every_frame=every,
+                )  # fmt: skip
+                best = min(best, time.perf_counter() - start)
+            reports[label] = job.report.model_dump(mode="json")
+            out[label] = {"ms_per_frame": round(1000 * best / frames, 2), "timings_s": job.report.timings_s}
+            print(f"  {label:<32} {1000 * best / frames:8.2f} ms/frame  {job.report.timings_s}")
+    a, b = ({k: v for k, v in r.items() if k not in ("timings_s", "context")} for r in reports.values())
+    out["report_differences"] = _numbers_differ(a, b)
+    out["machine"] = {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2),
+                      "platform": platform.platform()}  # fmt: skip
+    print(f"  reports differ at {len(out['report_differences'])} places")
+    path = args.output.with_name("metrics_job_benchmark.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -125,7 +125,12 @@ class BodyParts:
         return torch.nonzero(self._body_only(self.vertex_part == s)).flatten()
 
     def _body_only(self, mask: Tensor) -> Tensor:
-        return mask if self.body is None else mask & self.body
+        if self.body is None:
+            return mask
+        if self.body.shape != mask.shape:
+            raise ValueError(f"BodyParts.body has {self.body.shape[0]} vertices, the parts {mask.shape[0]}: a vertex "
+                             "subset of the parts must take the same subset of body")  # fmt: skip
+        return mask & self.body
 
     @property
     def body_count(self) -> int:

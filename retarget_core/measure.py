@@ -139,13 +139,16 @@ def measure_job(
     notes: list[str] | None = None,
     threads: int | None = MEASURE_THREADS,
     measure_source_motion: bool = True,
+    every_frame: bool = False,
 ) -> JobMeasurement:
     """Detect contacts on the source (unless given), carry them to the target, and measure "before" (and
     "after", against "before") on the target; ``constraints``: the contacts already carried to the target
     (default: carried here); ``reference`` is a ground-truth motion on the target if any.
     All motions must have the same frame count (the pipeline's motions do). ``threads``: torch threads
     while measuring (see :data:`MEASURE_THREADS`; None keeps the current setting). ``measure_source_motion``:
-    also measure the source on its own body (the report's ``source``, its warnings in ``notes``)."""
+    also measure the source on its own body (the report's ``source``, its warnings in ``notes``).
+    ``every_frame``: measure every frame and every hand-to-part distance exactly, "after" without copying the
+    frames it shares with "before" (the reference the default path is tested and benchmarked against)."""
     with torch_threads(threads):
         lengths = {"source view": source_view.num_frames, "before": before.num_frames}
         if after is not None:
@@ -172,7 +175,7 @@ def measure_job(
         hands = found.self_contacts.distances  # the source's hand-to-part distances, for the false contacts
         before_metrics, before_measures = compute_metrics(
             target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet,
-            source_hand_distances=hands,
+            source_hand_distances=hands, cull_hands=not every_frame,
         )
         after_metrics, after_measures = None, None
         if after is before:  # no stage changed the copy: the same measures, summarised against themselves
@@ -182,7 +185,7 @@ def measure_job(
             after_metrics, after_measures = compute_metrics(
                 target, target_mapping, sdf, after, contacts=constraints, original=before_measures,
                 reference=ref_measures, source_feet=found.feet, source_hand_distances=hands,
-                reuse=Reuse(before, before_measures),
+                reuse=None if every_frame else Reuse(before, before_measures), cull_hands=not every_frame,
             )  # fmt: skip
         timings["metrics"] = time.perf_counter() - t
         t = time.perf_counter()

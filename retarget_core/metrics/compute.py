@@ -632,12 +632,13 @@ def compute_metrics(
     params: MetricParams | None = None,
     source_hand_distances: HandPartDistances | None = None,
     reuse: Reuse | None = None,
+    cull_hands: bool = True,
 ) -> tuple[MethodMetrics, ClipMeasures]:
     """:func:`measure_clip` then :func:`summarize`; returns the metrics and the measures (reuse them as the
     ``original`` of a later result). ``source_hand_distances`` (``SelfContacts.distances`` of the source):
-    adds the false contacts. ``reuse``: see :func:`measure_clip`."""
+    adds the false contacts. ``reuse``, ``cull_hands``: see :func:`measure_clip`."""
     measures = measure_clip(character, mapping, sdf, motion, contacts, params=params,
-                            source_hand_distances=source_hand_distances, reuse=reuse)  # fmt: skip
+                            source_hand_distances=source_hand_distances, reuse=reuse, cull_hands=cull_hands)  # fmt: skip
     return summarize(measures, original, reference, source_feet, params), measures
 
 

@@ -1,0 +1,144 @@
+"""Time a whole job on the generated large character (about 100k vertices in five meshes) and its peak memory.
+
+1. The character is written to a scratch folder (``retarget_core.bodies.large_character``).
+2. A ``--frames`` (300) default-chain job of ``--motion`` at 30 fps, run ``--runs`` times (the first builds the
+   per-body cache): stage seconds of the last run, in ms per frame, beside the bulky sample's default chain
+   (read from ``--bulky`` (benchmarks/results/job_benchmark.json), or run here with ``--run-bulky``).
+3. A ``--memory-frames`` (1000) job of ``--memory-motion`` at the clip's own rate in a fresh process: its peak
+   resident memory (``resource.getrusage`` max RSS of the child; torch's allocations included).
+4. ``--profile``: one warm job under pyinstrument, its call tree next to the JSON.
+
+    flock /tmp/heavy.lock python benchmarks/large_character_benchmark.py [-o out.json]
+
+Targets (issue 20): the whole job at most 3 x the bulky sample's time per frame; peak memory at most 1.5 GB for
+1,000 frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+from job_benchmark import per_frame_ms, run_once  # noqa: E402
+
+DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
+SAMPLES = REPO / "retarget_core" / "data" / "samples"
+TIME_RATIO_TARGET = 3.0
+MEMORY_TARGET_MB = 1536.0
+
+
+def memory_job(glb: Path, motion: Path, frames: int) -> dict[str, Any]:
+    """Peak RSS (MB) of a fresh process running one ``frames``-frame default-chain job at the clip's rate."""
+    code = (
+        "import json, resource, sys, tempfile, time\n"
+        "from pathlib import Path\n"
+        "from retarget_core.jobs import JobInputs\n"
+        "from retarget_core.options import RetargetOptions\n"
+        "from retarget_core.pipeline import run_job\n"
+        "glb, motion, frames = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])\n"
+        "with tempfile.TemporaryDirectory() as tmp:\n"
+        "    t = time.perf_counter()\n"
+        "    out = run_job(JobInputs(motion, glb, options=RetargetOptions(frame_end=frames)), Path(tmp))\n"
+        "    wall = time.perf_counter() - t\n"
+        "    n = json.loads(out.metrics_json.read_text())['frames']\n"
+        "print(json.dumps({'frames': n, 'wall_s': round(wall, 2), 'stage_s': out.stage_seconds,\n"
+        "                  'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(glb), str(motion), str(frames)], capture_output=True,
+                          text=True, cwd=REPO, check=False)  # fmt: skip
+    if proc.returncode != 0:
+        raise RuntimeError(f"the {frames}-frame job failed: {proc.stderr[-2000:]}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["peak_rss_mb_children"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)
+    return out
+
+
+def bulky_reference(args: argparse.Namespace) -> dict[str, Any]:
+    """The bulky sample's default chain, ms per frame (run here or read from the job benchmark's JSON)."""
+    if args.run_bulky:
+        runs = [run_once(args.motion, str(SAMPLES / "characters" / "mh_male_bulky.glb"), args.frames, args.fps, None)
+                for _ in range(2)]  # fmt: skip
+        return {"source": "run here", "ms_per_frame": per_frame_ms(runs[-1])}
+    if not args.bulky.is_file():
+        raise SystemExit(f"{args.bulky} is missing: run benchmarks/job_benchmark.py or pass --run-bulky")
+    data = json.loads(args.bulky.read_text())
+    return {"source": str(args.bulky.relative_to(REPO)), "when": data.get("when"),
+            "ms_per_frame": data["default chain"]["ms_per_frame"]}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--motion", type=Path, default=DATA / "motions" / "cmu" / "002_08.bvh")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--runs", type=int, default=2, help="timed jobs; the first one builds the body cache")
+    ap.add_argument("--memory-motion", type=Path, default=DATA / "motions" / "cmu" / "001_01.bvh")
+    ap.add_argument("--memory-frames", type=int, default=1000, help="0: skip the memory job")
+    ap.add_argument("--bulky", type=Path, default=REPO / "benchmarks" / "results" / "job_benchmark.json")
+    ap.add_argument("--run-bulky", action="store_true", help="time the bulky sample here instead of reading it")
+    ap.add_argument("--profile", action="store_true", help="profile one warm job (pyinstrument)")
+    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "large_character_benchmark.json")
+    args = ap.parse_args()
+    from retarget_core.bodies.large_character import write_large_character
+    from retarget_core.loading import load_character
+
+    with tempfile.TemporaryDirectory() as tmp:
+        glb = write_large_character(Path(tmp) / "large_character.glb")
+        character = load_character(glb).character
+        meshes = [m.as_dict() for m in character.meshes]
+        print(f"large character: {character.num_vertices} vertices, {len(meshes)} meshes")
+        for m in meshes:
+            print(f"  {m['name']:<10} {m['role']:<10} {m['vertices']:>7} vertices  {m['reason']}")
+        runs = [run_once(args.motion, str(glb), args.frames, args.fps, None) for _ in range(args.runs)]
+        large = per_frame_ms(runs[-1])
+        print(f"\n{args.frames} frames of {args.motion.name}, default chain (body cache: "
+              f"{', '.join(r['body_cache'] for r in runs)}):")  # fmt: skip
+        for k, v in large.items():
+            print(f"  {k:<20} {v:9.2f} ms/frame")
+        memory = memory_job(glb, args.memory_motion, args.memory_frames) if args.memory_frames else None
+        if args.profile:
+            profile(glb, args)
+    bulky = bulky_reference(args)
+    ratio = large["whole job"] / bulky["ms_per_frame"]["whole job"]
+    out = {
+        "motion": args.motion.name, "frames": args.frames, "fps": args.fps,
+        "character": {"vertices": character.num_vertices, "triangles": int(character.faces.shape[0]), "meshes": meshes},
+        "runs": runs, "ms_per_frame": large, "bulky_sample": bulky,
+        "time_ratio_to_bulky": round(ratio, 2), "time_ratio_target": TIME_RATIO_TARGET,
+        "memory": memory, "memory_target_mb": MEMORY_TARGET_MB,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_average_1min": round(os.getloadavg()[0], 2)},
+        "when": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }  # fmt: skip
+    print(f"\nwhole job {large['whole job']} ms/frame = {ratio:.2f} x the bulky sample's (target {TIME_RATIO_TARGET})")
+    if memory:
+        print(f"peak memory, {memory['frames']} frames: {memory['peak_rss_mb']} MB (target {MEMORY_TARGET_MB:.0f})")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.output}")
+
+
+def profile(glb: Path, args: argparse.Namespace) -> None:
+    """One warm default-chain job under pyinstrument; the call tree next to the JSON."""
+    from pyinstrument import Profiler
+
+    profiler = Profiler(interval=0.005)
+    with profiler:
+        run_once(args.motion, str(glb), args.frames, args.fps, None)
+    path = args.output.with_name(args.output.stem + "_profile.txt")
+    path.write_text(profiler.output_text(unicode=False, color=False, show_all=False, time="seconds"))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
