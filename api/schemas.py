@@ -30,6 +30,16 @@ _INSPECT_EXAMPLE: dict[str, Any] = {
 # else is a 422 at once, not a database lookup of arbitrary text.
 ResourceId = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_:.-]+$")]
 
+NO_NUL = r"^[^\x00]*$"
+"""Texts the database stores: a NUL character cannot be stored (PostgreSQL), so the schema refuses it."""
+
+
+class BodyShape(BodyParams):
+    """BodyParams as a request gives them (its name is stored, so no NUL character)."""
+
+    name: str = Field(default="makehuman", max_length=300, pattern=NO_NUL)
+
+
 class ErrorOut(BaseModel):
     """Every error: a sentence a person can act on."""
 
@@ -98,9 +108,10 @@ class BodyCreate(BaseModel):
         json_schema_extra={"examples": [{"name": "tall heavy", "params": {"height": 1.9, "weight": 0.8}}]}
     )
 
-    name: str | None = Field(default=None, max_length=300, description="Display name; default: made from params")
-    params: BodyParams = Field(
-        default_factory=BodyParams,
+    name: str | None = Field(default=None, max_length=300, pattern=NO_NUL,
+                             description="Display name; default: made from params")
+    params: BodyShape = Field(
+        default_factory=BodyShape,
         description="The body's shape (retarget_core.bodies.params.BodyParams); fields left out keep their defaults",
     )
 
@@ -148,7 +159,7 @@ class BatchCreate(BaseModel):
         }
     )
 
-    name: str | None = Field(default=None, max_length=300)
+    name: str | None = Field(default=None, max_length=300, pattern=NO_NUL)
     motion_ids: list[ResourceId] = Field(min_length=1)
     target_character_ids: list[ResourceId] = Field(min_length=1)
     source_character_id: ResourceId | None = None

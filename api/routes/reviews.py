@@ -17,7 +17,7 @@ from api.db import utcnow
 from api.deps import CurrentKey, SessionDep, SettingsDep, StorageDep
 from api.models import Job, ReviewLink
 from api.routing import SessionRoute
-from api.schemas import ErrorOut
+from api.schemas import NO_NUL, ErrorOut
 from api.serialize import RESULT_FILES
 from api.services.jobs import find_job
 from api.settings import Settings
@@ -28,7 +28,8 @@ router = APIRouter(tags=["reviews"], route_class=SessionRoute)
 class ReviewLinkCreate(BaseModel):
     expires_in_seconds: float | None = Field(default=None, gt=0, description="Life of the link; default and "
                                              "maximum are settings (7 and 30 days)")
-    label: str | None = Field(default=None, max_length=200, description="Who it is for (shown in the list)")
+    label: str | None = Field(default=None, max_length=200, pattern=NO_NUL,
+                              description="Who it is for (shown in the list)")
 
 
 class ReviewLinkOut(BaseModel):
