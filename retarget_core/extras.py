@@ -57,6 +57,8 @@ from retarget_core.canonical import (
     TWIST_SLOTS,
     JointMapping,
 )
+from retarget_core.kinematics import forward_kinematics
+from retarget_core.motion import Motion
 from retarget_core.skeleton import Skeleton
 
 CONF_NAME = 0.9  # a finger/toe named and numbered along a chain below the right hand or foot
@@ -675,3 +677,23 @@ def twist_drivers(target: Skeleton, target_map: JointMapping) -> dict[int, Twist
         end_rest = rot.mul(rot.inv(grot[top]), grot[end])
         out[j] = TwistDriver(top, end, limb in ("Arm", "UpLeg"), axis / axis.norm(), share, offset, end_rest)
     return out
+
+
+def refresh_twists(motion: Motion, mapping: JointMapping) -> Motion:
+    """``motion`` with its twist bones re-driven from its own limbs (after a stage changed the arms or legs):
+    every other joint keeps its world rotation (a twist segment inside the chain passes its change on to no one).
+    Returns ``motion`` itself when the rig has no driven twist bone."""
+    drivers = twist_drivers(motion.skeleton, mapping)
+    if not drivers:
+        return motion
+    parents = motion.skeleton.parents
+    world, _ = forward_kinematics(parents, motion.rotations, motion.translations)
+    rest_local = motion.skeleton.rest_rotations
+    wanted = {j: world[:, j] for j in range(len(parents))}
+    for j, d in drivers.items():
+        wanted[j] = d.world([world[:, k] for k in range(len(parents))], motion.rotations, wanted, rest_local)
+    local = motion.rotations.clone()
+    for j, p in enumerate(parents):
+        if p >= 0 and (j in drivers or p in drivers):
+            local[:, j] = rot.normalize(rot.mul(rot.inv(wanted[p]), wanted[j]))
+    return Motion(motion.skeleton, motion.fps, local, motion.translations, motion.name)

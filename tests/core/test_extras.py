@@ -493,3 +493,29 @@ def test_real_reallusion_rig_from_the_cmu_clip(samples: Path) -> None:
             assert [got[f"{s}{limb}Twist{k}"] for k in (1, 2)] == [f"CC_Base_{s[0]}_{bone}0{k}" for k in (1, 2)]
     assert not any("Share" in v or v.endswith("_End") for v in got.values())
     assert len(got) == 2 * (15 + 5 + 8)
+
+
+def test_refresh_twists_follows_a_changed_hand_and_keeps_the_rest() -> None:
+    """After a stage turns the hand (as a refinement would), refresh_twists re-drives the forearm twist bones from
+    it; every other joint keeps its world rotation; on the copy itself it changes nothing."""
+    from retarget_core.extras import refresh_twists
+
+    sk = rig(UNREAL5.replace("lowerarm_twist_02_{s} 13 0 0", "lowerarm_twist_02_{s} 14 0 0"))
+    mapping = map_joints(sk)
+    frames = 6
+    still = Motion(sk, 30.0, sk.rest_rotations.repeat(frames, 1, 1), sk.rest_translations.repeat(frames, 1, 1), "s")
+    copied = copy_retarget(still, mapping, sk, mapping)
+    assert torch.allclose(refresh_twists(copied, mapping).rotations, copied.rotations, atol=1e-6)
+    local = copied.rotations.clone()
+    hand = mapping.joints["LeftHand"]
+    local[:, hand] = rot.mul(local[:, hand], about(torch.tensor([1.0, 0.0, 0.0]), torch.full((frames,), 1.0)))
+    turned = Motion(sk, 30.0, local, copied.translations, "t")
+    out = refresh_twists(turned, mapping)
+    g_in, _ = turned.global_transforms()
+    g_out, _ = out.global_transforms()
+    tw = mapping.extras["LeftForeArmTwist2"]
+    others = [j for j in range(sk.num_joints) if j != tw and j not in mapping.extras.values()]
+    assert float(_angle(g_in[:, others], g_out[:, others]).max()) < 1e-3
+    rel = rot.mul(rot.inv(g_out[:, mapping.joints["LeftForeArm"]]), g_out[:, tw])
+    share = mapping.twist_share["LeftForeArmTwist2"]
+    assert torch.allclose(twist_angle(rel, torch.tensor([1.0, 0.0, 0.0])), torch.full((frames,), share), atol=1e-4)
