@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
@@ -237,9 +238,10 @@ class _ExtraMapper:
 
     # ---------------------------------------------------------------- fingers and toes
 
-    def digits_by_name(self, side: str, top: int, read: type | None = None) -> dict[str, list[tuple[int, DigitName]]]:
-        """Joints below ``top`` grouped by the finger (or toe) their names give, each group by depth."""
-        reader = toe_name if read is toe_name else finger_name
+    def digits_by_name(
+        self, side: str, top: int, reader: Callable[[str], DigitName] = finger_name
+    ) -> dict[str, list[tuple[int, DigitName]]]:
+        """Joints below ``top`` grouped by the finger (or toe) ``reader`` reads in their names, each by depth."""
         groups: dict[str, list[tuple[int, DigitName]]] = {}
         for j in self.below(top, through_used=reader is toe_name):
             dn = reader(self.sk.names[j])
