@@ -519,3 +519,30 @@ def test_refresh_twists_follows_a_changed_hand_and_keeps_the_rest() -> None:
     rel = rot.mul(rot.inv(g_out[:, mapping.joints["LeftForeArm"]]), g_out[:, tw])
     share = mapping.twist_share["LeftForeArmTwist2"]
     assert torch.allclose(twist_angle(rel, torch.tensor([1.0, 0.0, 0.0])), torch.full((frames,), share), atol=1e-4)
+
+
+def test_vrm_map_in_a_skinned_file_reaches_the_mapping(tmp_path: Path) -> None:
+    """A skinned GLB carrying a VRMC_vrm humanoid map (here deliberately naming the middle finger as the index):
+    read_gltf exposes it, load_character maps the fingers by it (method 'vrm') and warns about the disagreement."""
+    from retarget_core.io.gltf_write import write_glb
+    from retarget_core.loading import load_character
+    from tests.core.extras_rigs import finger_body
+
+    path = tmp_path / "vrm.glb"
+    write_glb(finger_body("female_skinny", "mixamo"), None, path)
+    g = pygltflib.GLTF2().load(str(path))
+    node = {n.name: i for i, n in enumerate(g.nodes)}
+    bones = {"leftIndexProximal": "mixamorig:LeftHandMiddle1", "leftThumbMetacarpal": "mixamorig:LeftHandThumb1",
+             "hips": "mixamorig:Hips"}  # fmt: skip
+    g.extensionsUsed = ["VRMC_vrm"]
+    g.extensions = {"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": {
+        b: {"node": node[n]} for b, n in bones.items()}}}}  # fmt: skip
+    g.save(str(path))
+    loaded = load_character(path)
+    names = loaded.character.skeleton.names
+    mapping = loaded.mapping
+    assert names[mapping.extras["LeftHandIndex1"]] == "mixamorig:LeftHandMiddle1"
+    assert mapping.extra_method["LeftHandIndex1"] == "vrm" and mapping.extra_method["LeftHandThumb1"] == "vrm"
+    assert "LeftHandMiddle1" not in mapping.extras  # the VRM map's hand replaces the names' fingers
+    assert any("VRM humanoid map says" in w for w in mapping.warnings)
+    assert "RightHandIndex1" in mapping.extras and mapping.extra_method["RightHandIndex1"] == "name"
