@@ -243,6 +243,9 @@ def _resolve_override(skeleton: Skeleton, override: dict[str, str | None] | None
     if not override:
         return {}
     _check_canonical_names(override)  # type: ignore[arg-type]
+    bad = [k for k, v in override.items() if k.endswith(SHARE_SUFFIX) and not _valid_value(k, v)]
+    if bad:
+        raise MappingError(f"twist share(s) {', '.join(map(repr, bad))} must be numbers between -1 and 1")
     names = {k: v for k, v in override.items() if not k.endswith(SHARE_SUFFIX)}
     missing = [v for v in names.values() if v is not None and skeleton.find(v) is None]
     if missing:

@@ -256,6 +256,8 @@ def test_override_extras_and_twist_share(tmp_path: Path) -> None:
     path.write_text(json.dumps({"LeftHandIndx1": "CC_Base_L_Index1"}))
     with pytest.raises(MappingError, match="LeftHandIndex1"):
         load_override(path)
+    with pytest.raises(MappingError, match="between -1 and 1"):
+        map_joints(sk, {"LeftForeArmTwist1.share": "lots"})
     with pytest.raises(MappingError, match="does not have"):
         map_joints(sk, {"LeftHandIndex1": "no_such_joint"})
     assert len(EXTRA_JOINTS) == len(set(EXTRA_JOINTS))
