@@ -88,7 +88,8 @@ def add_v1_fallback(app: FastAPI) -> None:
         for method in methods:
             probe = {**request.scope, "method": method}
             for route in app.router.routes:
-                if getattr(route, "name", None) == "v1_fallback":
+                # the front end's mount at / matches every path and method: not an API route
+                if getattr(route, "name", None) in ("v1_fallback", "frontend"):
                     continue
                 if route.matches(probe)[0] == Match.FULL:
                     allowed.append(method)

@@ -236,3 +236,23 @@ def test_nul_characters_are_a_422_not_a_server_error(api_env: ApiEnv) -> None:
     r = api_env.client.post("/v1/batches", json={"name": "a\x00b", "motion_ids": ["m"], "target_character_ids": ["c"]},
                             headers=h)
     assert r.status_code == 422, r.text
+
+
+def test_405_names_only_the_methods_of_the_path_with_the_front_end_mounted(tmp_path: Any,
+                                                                          database_url: str) -> None:
+    """The front end's mount at / matches every method; the Allow header must still list only the path's own."""
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+    from api.settings import Settings
+
+    front = tmp_path / "front"
+    front.mkdir()
+    (front / "index.html").write_text("<!doctype html><title>app</title>")
+    app = create_app(Settings(data_dir=tmp_path / "data", database_url=database_url, frontend_dir=front))
+    with TestClient(app) as client:
+        r = client.delete("/v1/info")
+        assert r.status_code == 405 and r.headers["allow"] == "GET", r.headers
+        r = client.put("/v1/jobs/job_x")
+        assert r.status_code == 405 and r.headers["allow"] == "GET", r.headers
+        assert client.get("/some/page").status_code == 200  # the front end still answers its own paths
