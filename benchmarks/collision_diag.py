@@ -19,11 +19,12 @@ import numpy as np
 import torch
 from heldout_case import case_parser, prepare_case
 
+from retarget_core.geometry.judged_pairs import judged_allowed
 from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measures, measure_acceptance
 from retarget_core.metrics.acceptance_body import PARTS, acceptance_body
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions
-from retarget_core.refine.collision_check import check_frames, contact_instances, judged_allowed
+from retarget_core.refine.collision_check import check_frames, contact_instances
 from retarget_core.resample import resample
 
 

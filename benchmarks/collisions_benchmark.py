@@ -18,12 +18,12 @@ from typing import Any
 import torch
 
 from retarget_core.body_parts import CLUSTERS
+from retarget_core.cases import context_from_files
+from retarget_core.context import RefineContext
 from retarget_core.energy.sdf import PairSamples, sample_pairs, segment_matrices, vertex_depths
 from retarget_core.metrics.compute import ClipMeasures, compute_metrics
 from retarget_core.motion import Motion
-from retarget_core.refine.build_context import context_from_files
 from retarget_core.refine.collisions import resolve
-from retarget_core.refine.context import RefineContext
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"

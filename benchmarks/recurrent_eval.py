@@ -16,9 +16,9 @@ from pathlib import Path
 
 import torch
 
+from retarget_core.cases import context_from_prepared, prepared_case
 from retarget_core.measure import measure_job
 from retarget_core.model import inference
-from retarget_core.model.case import context_from_prepared, prepared_case
 from retarget_core.model.data import HELD_OUT_CLIPS
 from retarget_core.refine import eso, recurrent
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from retarget_core.model.case import context_from_prepared, prepared_case
+from retarget_core.cases import context_from_prepared, prepared_case
 from retarget_core.refine import eso, recurrent
 
 REPO = Path(__file__).resolve().parents[1]

@@ -36,6 +36,7 @@ from retarget_core.energy.sdf import (
     segment_matrices,
     vertex_depths,
 )
+from retarget_core.metrics.depth import VertexDepths
 from retarget_core.metrics.frames import Reuse, frame_chunks, hand_part_candidates, unchanged_frames
 from retarget_core.metrics.report import MethodMetrics, MetricSummary, PenetratingVertices, Series, measure
 from retarget_core.motion import Motion
@@ -60,7 +61,8 @@ class ClipMeasures:
     body vertices; docs/meshes.md); vertex_depth still has a column per mesh vertex.
 
     joints: ``(F, C, 3)`` world positions of the mapped canonical joints (``joint_names``).
-    vertex_depth: ``(F, V)`` weighted penetration depth of every vertex (m).
+    depths: the weighted penetration depth of every vertex per frame, ``(F, V)`` (m), as its nonzero entries
+        (:class:`VertexDepths`; ``vertex_depth`` gives the dense array).
     penetration_volume: ``(F,)`` sum of vertex area x depth (m^3).
     limb_distance: ``(F, 4)`` paper 2's signed distance of each limb's end segments to the nearest segment of
         another cluster (m, capped at the grid margin), limbs in :data:`LIMBS` order.
@@ -78,7 +80,7 @@ class ClipMeasures:
     num_vertices: int
     joint_names: list[str]
     joints: Tensor
-    vertex_depth: Tensor
+    depths: VertexDepths
     penetration_volume: Tensor
     limb_distance: Tensor
     lowest_vertex: Tensor
@@ -96,6 +98,11 @@ class ClipMeasures:
     @property
     def scale_to_180(self) -> float:
         return REFERENCE_HEIGHT_M / self.height
+
+    @property
+    def vertex_depth(self) -> Tensor:
+        """The dense ``(F, V)`` depths (scripts and tests; F x V floats)."""
+        return self.depths.dense()
 
 
 def limb_distances(parts: BodyParts, dist: Tensor) -> Tensor:
@@ -155,7 +162,8 @@ def measure_clip(
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
         c_dist, c_frame = contact_pair_distances(character, contacts, grot, gpos, params.frame_chunk)
     return ClipMeasures(
-        motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx], out.depth, out.volume, out.limb,
+        motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx],
+        VertexDepths.concat(out.depth, f_n, v_n), out.volume, out.limb,
         out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
         hands.result() if hands is not None else None,
     )  # fmt: skip
@@ -165,7 +173,8 @@ class _FrameMeasures:
     """The per-frame arrays of :class:`ClipMeasures`, filled chunk by chunk of frames."""
 
     def __init__(self, f_n: int, v_n: int, body: Tensor | None) -> None:
-        self.depth = torch.zeros(f_n, v_n)
+        self.f_n = f_n
+        self.depth: list[VertexDepths] = []  # per chunk
         self.body = None if body is None else torch.nonzero(body).flatten()  # only these are posed and measured
         self.volume = torch.zeros(f_n)
         self.limb = torch.zeros(f_n, len(LIMBS))
@@ -183,7 +192,7 @@ class _FrameMeasures:
             verts = character.pose_vertex_subset(self.body, grot, gpos)
             samples = sample_pairs(sdf, verts, mats, vertices=self.body)
         d = vertex_depths(sdf, samples, c)
-        self.depth[frames] = d
+        self.depth.append(VertexDepths.from_dense(d, frames, self.f_n))
         self.volume[frames] = (d * sdf.vertex_area).sum(-1)
         self.limb[frames] = limb_distances(sdf.parts, distance_matrix(sdf, samples, c))
         self.lowest[frames] = verts[..., 1].amin(-1)
@@ -200,7 +209,7 @@ class _FrameMeasures:
     def copy(self, frames: Tensor, other: ClipMeasures, ground: float, hands: ContactHandMeter | None) -> None:
         """Copy the frames ``frames (C,)`` from ``other`` (a motion posed the same there, measured with the same
         ``ground``)."""
-        self.depth[frames] = other.vertex_depth[frames]
+        self.depth.append(other.depths.select_frames(frames))
         self.volume[frames] = other.penetration_volume[frames]
         self.limb[frames] = other.limb_distance[frames]
         self.lowest[frames] = other.lowest_vertex[frames] + ground
@@ -234,18 +243,16 @@ def vertex_part_clusters(parts: BodyParts) -> Tensor:
     return torch.tensor(parts.cluster, dtype=torch.long).index_select(0, parts.vertex_part)
 
 
-def penetration_by_part(vertex_depth: Tensor, vertex_cluster: Tensor, tolerance: float,
+def penetration_by_part(depths: VertexDepths, vertex_cluster: Tensor, tolerance: float,
                         count: int | None = None) -> Tensor:  # fmt: skip
     """``(F, 6)`` per frame and part (:data:`CLUSTERS` order): the share (%) of ALL body vertices (``count``,
     default all columns) that belong to that part and are deeper than ``tolerance`` (m), so the six columns add up
     to the frame's penetrating share."""
-    f_n, v_n = vertex_depth.shape
-    v_n = v_n if count is None else count
+    f_n = depths.num_frames
+    v_n = depths.num_vertices if count is None else count
     if v_n == 0:
         return torch.zeros(f_n, len(CLUSTERS))
-    hot = (vertex_depth > tolerance).float()  # (F, V)
-    counts = torch.zeros(f_n, len(CLUSTERS)).index_add_(1, vertex_cluster, hot)
-    return counts * (100.0 / v_n)
+    return depths.count_above(tolerance, vertex_cluster, len(CLUSTERS)).float() * (100.0 / v_n)
 
 
 def part_split(m: ClipMeasures, tolerance: float) -> tuple[dict[str, float] | None, dict[str, Series]]:
@@ -253,7 +260,7 @@ def part_split(m: ClipMeasures, tolerance: float) -> tuple[dict[str, float] | No
     series ``penetrating_vertices_percent_<part>``; ``(None, {})`` when the vertices' parts are not known."""
     if m.vertex_cluster is None:
         return None, {}
-    per_frame = penetration_by_part(m.vertex_depth, m.vertex_cluster, tolerance, m.num_vertices)
+    per_frame = penetration_by_part(m.depths, m.vertex_cluster, tolerance, m.num_vertices)
     means = per_frame.mean(0) if m.num_frames else torch.zeros(len(CLUSTERS))
     summary = {name: round(float(means[c]), 4) for c, name in enumerate(CLUSTERS)}
     series = {f"penetrating_vertices_percent_{name}": _series(per_frame[:, c], "%") for c, name in enumerate(CLUSTERS)}
@@ -477,8 +484,8 @@ def summarize(
     f_n = m.num_frames
     tol = params.penetration_tolerance_m / s
     # Penetration.
-    frame_max = m.vertex_depth.amax(-1) if m.num_vertices else torch.zeros(f_n)
-    pen_verts = (m.vertex_depth > tol).sum(-1).float() * (100.0 / max(m.num_vertices, 1))
+    frame_max = m.depths.frame_max()
+    pen_verts = m.depths.count_above(tol).float() * (100.0 / max(m.num_vertices, 1))
     pen_by_part, pen_part_series = part_split(m, tol)
     # Paper 2 collision metrics (cm^2).
     d_cur = m.limb_distance
@@ -588,18 +595,13 @@ def penetrating_vertices(
 ) -> PenetratingVertices:
     """Per frame, the (at most ``per_frame``) deepest vertices deeper than ``tolerance_m``; depth in cm at 1.80 m
     (``to_180``: the factor from the body's metres to metres at 1.80 m)."""
-    depth = m.vertex_depth
-    count = (depth > tolerance_m).sum(-1)
-    k = min(per_frame, depth.shape[1])
-    top, idx = depth.topk(k, dim=-1)
-    keep = top > tolerance_m
-    frames = torch.arange(depth.shape[0]).unsqueeze(-1).expand_as(idx)[keep]
+    frames, vertex, depth, truncated = m.depths.deepest(tolerance_m, per_frame)
     return PenetratingVertices(
         frame=frames.tolist(),
-        vertex=idx[keep].tolist(),
-        depth=[round(v, 2) for v in (top[keep] * to_180 * 100.0).tolist()],
+        vertex=vertex.tolist(),
+        depth=[round(v, 2) for v in (depth * to_180 * 100.0).tolist()],
         per_frame_limit=per_frame,
-        truncated=bool((count > per_frame).any()),
+        truncated=truncated,
     )
 
 

@@ -141,14 +141,14 @@ def measure_source(
     per_frame = REFERENCE_FPS / source_view.fps  # a step per clip frame -> per 1/30 s is step / per_frame
     parts = sdf.parts
     measures = measure_clip(body, mapping, sdf, source_view)
-    depth = measures.vertex_depth  # (F, V)
+    depth = measures.depths  # (F, V), nonzero entries
     tol = MetricParams().penetration_tolerance_m / k
     by_part = (penetration_by_part(depth, measures.vertex_cluster, tol, measures.num_vertices)
                if measures.vertex_cluster is not None else None)  # fmt: skip
     part_means = by_part.mean(0) if by_part is not None and f_n else torch.zeros(len(CLUSTERS))
     # Hands inside the body.
     hands = hand_vertices(parts)
-    hand_depth = {name: depth[:, idx].amax(-1) if len(idx) else torch.zeros(f_n) for name, idx in hands.items()}
+    hand_depth = {name: depth.frame_max(idx) if len(idx) else torch.zeros(f_n) for name, idx in hands.items()}
     hand_max = torch.stack(list(hand_depth.values()), -1).amax(-1) if hand_depth else torch.zeros(f_n)
     hand_inside = hand_max > th.hand_depth_m / k
     pen_count = max(f_n * measures.num_vertices, 1)  # body vertices x frames
@@ -182,7 +182,7 @@ def measure_source(
         body=body.name,
         frames=f_n,
         fps=source_view.fps,
-        penetrating_vertices_percent=round(float((depth > tol).sum()) * 100.0 / pen_count, 4) if f_n else None,
+        penetrating_vertices_percent=round(float(depth.count_above(tol).sum()) * 100.0 / pen_count, 4) if f_n else None,
         penetrating_vertices_percent_by_part={n: round(float(part_means[c]), 4) for c, n in enumerate(CLUSTERS)},
         penetration_max_depth=measure(float(depth.max()) * cm if depth.numel() else None, k, "cm"),
         hand_depth_max=measure(float(hand_max.max()) * cm if f_n else None, k, "cm"),

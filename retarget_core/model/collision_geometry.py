@@ -30,9 +30,9 @@ from torch import Tensor
 from retarget_core.body_parts import CLUSTERS, BodyParts
 from retarget_core.character import Character
 from retarget_core.energy.sdf import PartSDF
-from retarget_core.refine.collision_check import judged_cluster_table
-from retarget_core.refine.collision_energy import TripleSet, candidate_triples, sentinel_vertices, triple_depths
-from retarget_core.refine.point_poser import PointPoser
+from retarget_core.geometry.judged_pairs import judged_cluster_table
+from retarget_core.geometry.point_poser import PointPoser
+from retarget_core.geometry.triples import TripleSet, candidate_triples, sentinel_vertices, triple_depths
 
 LIMBS: tuple[str, ...] = ("left_arm", "right_arm", "left_leg", "right_leg")
 """The four segment clusters that get a model (paper 2, section 5), in :data:`CLUSTERS` names."""

@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from retarget_core.context import RefineContext
 from retarget_core.model.features import (
     TargetRig,
     apply_residual,
@@ -22,7 +23,6 @@ from retarget_core.model.features import (
 )
 from retarget_core.model.network import RecurrentRetargeter, load_network
 from retarget_core.motion import Motion
-from retarget_core.refine.context import RefineContext
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "recurrent.pt"
 

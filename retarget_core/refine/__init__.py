@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from importlib import import_module
 
-from retarget_core.refine.context import RefineContext, RefineStage, StageOutcome, resolve_device
+from retarget_core.context import RefineContext, RefineStage, StageOutcome, resolve_device
 from retarget_core.stages import REFINEMENT_STAGE_NAMES, StageInfo, stage_info
 
 

@@ -28,6 +28,8 @@ import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
+from retarget_core.context import RefineContext, StageOutcome
+from retarget_core.geometry.judged_pairs import judged_allowed
 from retarget_core.model.collision_geometry import LIMB_ROWS, LimbPoints, collision_matrix, contact_exempt, limb_points
 from retarget_core.model.collision_net import (
     BodyRig,
@@ -44,10 +46,8 @@ from retarget_core.refine.collision_check import (
     FrameCheck,
     check_frames,
     contact_instances,
-    judged_allowed,
     stage_figures,
 )
-from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collisions.pt"

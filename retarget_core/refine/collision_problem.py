@@ -12,11 +12,11 @@ from torch import Tensor
 
 from retarget_core import kinematics
 from retarget_core.body_parts import CLUSTERS
+from retarget_core.context import RefineContext
+from retarget_core.geometry.point_poser import PointPoser, rotvec_to_matrix
+from retarget_core.geometry.triples import sentinel_vertices
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
-from retarget_core.refine.collision_energy import sentinel_vertices
 from retarget_core.refine.collision_params import CollisionParams, at_fps
-from retarget_core.refine.context import RefineContext
-from retarget_core.refine.point_poser import PointPoser, rotvec_to_matrix
 
 
 @dataclass

@@ -9,19 +9,18 @@ import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
+from retarget_core.context import RefineContext
+from retarget_core.geometry.triples import near_triples, penetration_energy_rows
 from retarget_core.refine.collision_energy import (
     contact_distances_rows,
     contact_energy_rows,
     near_contact_rows,
-    near_triples,
     pair_energy_rows,
-    penetration_energy_rows,
 )
 from retarget_core.refine.collision_mesh import mesh_energy_rows
 from retarget_core.refine.collision_params import CollisionParams
 from retarget_core.refine.collision_problem import Problem
 from retarget_core.refine.collision_terms import EnergyRows, Terms, compact, energy_rows, near_ground, read_rows
-from retarget_core.refine.context import RefineContext
 
 
 def expmap(r: Tensor) -> Tensor:

@@ -10,12 +10,13 @@ import torch
 from torch import Tensor
 
 from retarget_core.body_parts import CLUSTERS
+from retarget_core.context import RefineContext
+from retarget_core.geometry.point_poser import PointPoser, RowPlan, pose_rows
+from retarget_core.geometry.triples import TripleSet, candidate_triples
 from retarget_core.refine.collision_check import ContactInstances
 from retarget_core.refine.collision_energy import (
     ContactPairs,
     ContactTargets,
-    TripleSet,
-    candidate_triples,
     contact_row_points,
     instance_distance,
     pair_distance,
@@ -23,8 +24,6 @@ from retarget_core.refine.collision_energy import (
 from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms
 from retarget_core.refine.collision_params import CollisionParams
 from retarget_core.refine.collision_problem import Ground, Problem, hold_table
-from retarget_core.refine.context import RefineContext
-from retarget_core.refine.point_poser import PointPoser, RowPlan, pose_rows
 
 
 @dataclass

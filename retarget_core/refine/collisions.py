@@ -32,6 +32,9 @@ from torch import Tensor
 
 from retarget_core import kinematics
 from retarget_core import rotations as rot
+from retarget_core.context import RefineContext, StageOutcome
+from retarget_core.geometry.judged_pairs import judged_allowed
+from retarget_core.geometry.triples import sentinel_vertices
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import (
     CONTACT_KEPT_M,
@@ -39,10 +42,8 @@ from retarget_core.refine.collision_check import (
     FrameCheck,
     check_frames,
     contact_instances,
-    judged_allowed,
     stage_figures,
 )
-from retarget_core.refine.collision_energy import sentinel_vertices
 from retarget_core.refine.collision_mesh import MeshPairs, MeshSetup, mesh_pairs_of_motion, mesh_setup
 from retarget_core.refine.collision_params import (
     END_EFFECTOR_PULL,
@@ -62,7 +63,6 @@ from retarget_core.refine.collision_problem import (
 )
 from retarget_core.refine.collision_solver import apply_residual, optimise
 from retarget_core.refine.collision_terms import build_terms
-from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.judged_contacts import judged_source_instances, merged_instances
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 from retarget_core.refine.temporal import bspline_basis

@@ -8,11 +8,11 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
+from retarget_core.context import RefineContext, StageOutcome
 from retarget_core.model.energy import body_kit
 from retarget_core.model.eso import ESOParams, optimise
 from retarget_core.model.inference import network_inputs, run_network, shipped_network
 from retarget_core.motion import Motion
-from retarget_core.refine.context import RefineContext, StageOutcome
 
 
 def run(ctx: RefineContext, motion: Motion, params: ESOParams | None = None) -> StageOutcome:

@@ -42,10 +42,10 @@ from torch import Tensor
 from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.character import Character
+from retarget_core.context import RefineContext, StageOutcome
 from retarget_core.energy.sdf import effective_depth, sample_pairs, segment_matrices
 from retarget_core.metrics.feet_acceptance import foot_vertices_of
 from retarget_core.motion import Motion
-from retarget_core.refine.context import RefineContext, StageOutcome
 from retarget_core.refine.two_bone_ik import two_bone_ik
 
 REFERENCE_HEIGHT_M = 1.80

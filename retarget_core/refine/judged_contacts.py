@@ -16,8 +16,8 @@ from torch import Tensor
 from retarget_core import kinematics
 from retarget_core.body_parts import CLUSTERS, body_parts
 from retarget_core.contacts.hand_distance import REFERENCE_HEIGHT_M, HandPartDistances, hand_part_distances
+from retarget_core.context import RefineContext
 from retarget_core.refine.collision_check import ContactInstances
-from retarget_core.refine.context import RefineContext
 
 SOURCE_CONTACT_M = 0.015  # ACCEPTANCE.md: a source contact is a hand within 1.5 cm of a part (at 1.80 m)
 

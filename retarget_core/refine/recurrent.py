@@ -8,9 +8,9 @@ import time
 
 import torch
 
+from retarget_core.context import RefineContext, StageOutcome
 from retarget_core.model.inference import network_inputs, run_network, shipped_network
 from retarget_core.motion import Motion
-from retarget_core.refine.context import RefineContext, StageOutcome
 
 CHANGED_DEGREES = 0.5  # a frame counts as changed when a joint turned by more than this
 CHANGED_ROOT_M = 0.005  # ... or the root moved by more than this (at 1.80 m)

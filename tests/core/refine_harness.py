@@ -9,13 +9,13 @@ from retarget_core.body_cache import part_sdf_for
 from retarget_core.body_parts import body_parts
 from retarget_core.contacts.correspondence import build_correspondence, no_contacts, transfer_contacts
 from retarget_core.contacts.foot_contact import FOOT_JOINTS, FootContacts
+from retarget_core.context import RefineContext
 from retarget_core.copy_retarget import copy_retarget
 from retarget_core.loading import LoadedCharacter, LoadedMotion
 from retarget_core.measure import SourceContactResult, detect_source_contacts
 from retarget_core.metrics.feet_acceptance import planted_feet
 from retarget_core.motion import Motion
 from retarget_core.placement import place_on_floor, planted_frames
-from retarget_core.refine.context import RefineContext
 from retarget_core.source_body import source_body_for
 
 

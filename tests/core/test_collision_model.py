@@ -12,15 +12,16 @@ import torch
 
 from retarget_core.bodies.params import BodyParams
 from retarget_core.body_parts import CLUSTERS
-from retarget_core.model.case import context_from_prepared, prepared_case
+from retarget_core.cases import context_from_prepared, prepared_case
+from retarget_core.context import RefineContext
+from retarget_core.geometry.judged_pairs import judged_allowed
 from retarget_core.model.collision_data import build_collision_data
 from retarget_core.model.collision_geometry import collision_matrix, limb_points
 from retarget_core.model.collision_net import CollisionNet, body_rig, load_collision_net, pose_features, run_model
 from retarget_core.model.train_collisions import CollisionTrainConfig, train_collisions
 from retarget_core.motion import Motion
 from retarget_core.refine import collision_model
-from retarget_core.refine.collision_check import check_frames, contact_instances, judged_allowed
-from retarget_core.refine.context import RefineContext
+from retarget_core.refine.collision_check import check_frames, contact_instances
 from retarget_core.retargeted import Prepared
 from tests.core.test_collisions import _arm_boxes, _context, _pushed_in
 

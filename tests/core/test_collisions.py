@@ -19,12 +19,12 @@ from retarget_core.character import Character
 from retarget_core.contacts.correspondence import ContactConstraints, no_contacts
 from retarget_core.contacts.foot_contact import FootContacts
 from retarget_core.contacts.self_contact import SelfContacts
+from retarget_core.context import RefineContext
 from retarget_core.energy.sdf import build_part_sdf, segment_matrices
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import check_frames, contact_instances
 from retarget_core.refine.collision_matrix import cluster_collision_matrix
 from retarget_core.refine.collisions import resolve
-from retarget_core.refine.context import RefineContext
 from retarget_core.skeleton import Skeleton
 
 BIG, SMALL = 0.4, 0.1  # the torso box (skinned to Hips) and the hand box (skinned to LeftHand)
@@ -240,7 +240,7 @@ def _jerk(m: Motion) -> float:
 
 @pytest.mark.slow
 def test_real_clip_is_smooth_and_less_penetrating(shared_data: Path) -> None:
-    from retarget_core.refine.build_context import context_from_files
+    from retarget_core.cases import context_from_files
 
     ctx = context_from_files(shared_data / "motions/cmu/002_05.bvh", shared_data / "characters/mh_male_bulky.glb", 0, 60, fps=30)
     out = resolve(ctx, ctx.before)
@@ -277,10 +277,10 @@ def test_culled_contact_rows_give_the_same_instance_distances(bulky: Character) 
     """The contact term measures only the (hand point, segment) pairs that can be an instance's nearest
     (``near_contact_rows``): at the pose they were chosen on, every instance's distance is the full one's, with
     fewer pairs measured."""
+    from retarget_core.geometry.point_poser import PointPoser
     from retarget_core.refine.collision_energy import instance_distance, near_contact_rows
     from retarget_core.refine.collision_terms import contact_targets
     from retarget_core.refine.judged_contacts import judged_source_instances
-    from retarget_core.refine.point_poser import PointPoser
 
     near, _, _ = _hand_in_belly(bulky, 0.01, 3)
     ctx = _context(bulky, near)
@@ -326,7 +326,7 @@ def test_planted_feet_stay_where_the_input_had_them(shared_data: Path) -> None:
     """A deep bend with the hands on the legs (002_06) on a bulky body: the stage turns the legs out of the arms
     but moves the ankles of planted feet less than with the other end effectors' weight (the foot lock, run
     after it, would otherwise restore them by bending the knees into the hands)."""
-    from retarget_core.refine.build_context import context_from_files
+    from retarget_core.cases import context_from_files
     from retarget_core.refine.collisions import CollisionParams
 
     ctx = context_from_files(shared_data / "motions/cmu/002_06.bvh", shared_data / "characters/mh_male_bulky.glb", 0, 60, fps=30)
@@ -347,7 +347,7 @@ def test_planted_feet_stay_where_the_input_had_them(shared_data: Path) -> None:
 def test_posing_only_the_rows_an_energy_reads_matches_posing_every_point(bulky: Character) -> None:
     """``pose_rows`` (sparse influences, only the (frame, point) rows asked for, repeats allowed) gives the
     positions the dense poser gives for those rows."""
-    from retarget_core.refine.point_poser import PointPoser, pose_rows
+    from retarget_core.geometry.point_poser import PointPoser, pose_rows
 
     motion, _, _ = _hand_in_belly(bulky, 0.02, 4)
     ctx = _context(bulky, motion)

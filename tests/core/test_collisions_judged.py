@@ -9,11 +9,11 @@ import torch
 
 from retarget_core import kinematics
 from retarget_core.body_parts import CLUSTERS
+from retarget_core.geometry.judged_pairs import judged_allowed, judged_cluster_table
+from retarget_core.geometry.point_poser import PointPoser
+from retarget_core.geometry.triples import candidate_triples, penetration_energy
 from retarget_core.motion import Motion
-from retarget_core.refine.collision_check import judged_allowed, judged_cluster_table
-from retarget_core.refine.collision_energy import candidate_triples, penetration_energy
 from retarget_core.refine.collision_problem import ee_targets
-from retarget_core.refine.point_poser import PointPoser
 from tests.core.test_collisions import _arm_boxes, _context, _pushed_in
 
 

@@ -11,15 +11,15 @@ import pytest
 import torch
 
 from retarget_core.bodies.params import BodyParams
+from retarget_core.cases import context_from_prepared, prepared_case
+from retarget_core.context import RefineContext
 from retarget_core.model import inference
-from retarget_core.model.case import context_from_prepared, prepared_case
 from retarget_core.model.data import build_dataset, draw_windows
 from retarget_core.model.energy import body_kit
 from retarget_core.model.eso import ESOParams, optimise
 from retarget_core.model.features import from_6d, to_6d
 from retarget_core.model.network import NetworkConfig, RecurrentRetargeter, load_network
 from retarget_core.model.train_recurrent import TrainConfig, train
-from retarget_core.refine.context import RefineContext
 from retarget_core.retargeted import Prepared
 
 FRAMES = 45
