@@ -31,3 +31,20 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def samples() -> Path:
     return SAMPLES
+
+
+EXPECTED_SKIP = "shared"
+"""The only skips a complete machine expects: tests that need ../shared/data when it is absent (their reasons say
+"shared"). Any other skip (no PostgreSQL, Redis, Chromium, node, a package) means the set-up is broken."""
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, exitstatus: int) -> None:
+    """List skips that are not expected, and fail the run when there are any (``make test`` installs the rest)."""
+    unexpected = [r for r in terminalreporter.stats.get("skipped", [])
+                  if EXPECTED_SKIP not in str(getattr(r, "longrepr", "")).lower()]  # fmt: skip
+    if not unexpected:
+        return
+    terminalreporter.section("unexpected skips")
+    for r in unexpected:
+        terminalreporter.write_line(f"{r.nodeid}: {r.longrepr}")
+    terminalreporter._session.exitstatus = pytest.ExitCode.TESTS_FAILED  # type: ignore[attr-defined]
