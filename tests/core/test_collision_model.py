@@ -132,9 +132,10 @@ def test_pipeline_runs_the_learned_stage_before_collisions_when_switched_on(prep
     from retarget_core import pipeline
     from retarget_core.options import RetargetOptions
 
-    opts = RetargetOptions(frame_end=FRAMES, stages={"learned_collisions": True, "collisions": False, "foot_lock": False})
+    opts = RetargetOptions(frame_end=FRAMES, stages={"learned_collisions": True, "foot_lock": False})
     result = pipeline.refine(prepared, options=opts)
-    assert "learned_collisions" in result.stages_run and "collisions" not in result.stages_run
+    order = [s for s in result.stages_run if s in ("learned_collisions", "collisions")]
+    assert order == ["learned_collisions", "collisions"]
     rep = result.stage_reports["learned_collisions"]
-    assert rep["frames_changed"] >= 0 and "penetration_after" in rep
+    assert rep["frames_changed"] > 0, rep  # the walk's arms are in the bulky torso: the model turns them out
     assert result.after.num_frames == prepared.before.num_frames

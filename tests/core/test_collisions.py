@@ -197,8 +197,8 @@ def test_hand_sunk_into_the_belly_ends_on_its_surface(bulky: Character) -> None:
     depth_after, distance_after = measure(out.motion)
     assert depth_after < 0.01, out.report
     # Near the surface, not pushed away: the stage pulls a contact within 5 mm and lets no hand vertex sink
-    # (the judge counts a sunk hand as penetration); the judge keeps a contact below 2.5 cm.
-    assert distance_after < 0.015, out.report
+    # (the judge counts a sunk hand as penetration); "on its surface" is within 1 cm.
+    assert distance_after < 0.01, out.report
     assert out.report["contacts"]["kept_after"] == 1.0
 
 

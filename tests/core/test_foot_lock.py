@@ -22,7 +22,7 @@ from refine_harness import Harness, make_context  # noqa: E402
 FAST = foot_lock.FootLockParams(check_collisions=False)
 MAX_PLANT_MOTION_M = 0.002  # issue 9: "a planted foot moves less than 2 mm while planted"
 MAX_JERK_RATIO = 1.1  # ACCEPTANCE.md
-MIN_FOOT_ACCURACY = 0.93  # ACCEPTANCE.md asks 0.97; this walk on bulky reaches 0.937 (see the xfail below)
+MIN_FOOT_ACCURACY = 0.95  # ACCEPTANCE.md asks 0.97; the bound this test held before the copy changed
 
 
 @pytest.fixture(scope="module")
@@ -180,14 +180,23 @@ def test_leg_collisions_rechecked(walk: LoadedMotion, bulky: LoadedCharacter) ->
         assert pen["max_depth_cm"] >= 0.0
 
 
-def test_judged_foot_accuracy_on_a_walk(harness: Harness, locked: foot_lock.StageOutcome) -> None:
-    """The plants locked are the judge's (ctx.planted): the result's labels agree with the source's."""
+def test_lock_lowers_the_skate_on_a_walk(harness: Harness, locked: foot_lock.StageOutcome) -> None:
+    """The plants locked are the judge's (ctx.planted): planted feet slide less than the copy's."""
     ctx = harness.context
     assert ctx.planted is not None and bool(ctx.planted.any())
     before = feet_figures(ctx.target, ctx.target_mapping, ctx.before, ctx.planted)
     after = feet_figures(ctx.target, ctx.target_mapping, locked.motion, ctx.planted)
-    assert after.foot_accuracy >= MIN_FOOT_ACCURACY, (before.as_dict(), after.as_dict())
     assert after.skate_cm is not None and before.skate_cm is not None and after.skate_cm < before.skate_cm
+
+
+@pytest.mark.xfail(strict=True, reason="known gap: this walk on bulky reads 0.937 after the lock (the copy 0.973): "
+                   "its fades pull a hovering, still copy foot around a 4-frame plant under the judge's 3 cm toe line")
+def test_judged_foot_accuracy_on_a_walk(harness: Harness, locked: foot_lock.StageOutcome) -> None:
+    """The result's plant labels agree with the source's as the judge reads them."""
+    ctx = harness.context
+    before = feet_figures(ctx.target, ctx.target_mapping, ctx.before, ctx.planted)
+    after = feet_figures(ctx.target, ctx.target_mapping, locked.motion, ctx.planted)
+    assert after.foot_accuracy >= MIN_FOOT_ACCURACY, (before.as_dict(), after.as_dict())
 
 
 @pytest.mark.xfail(strict=True, reason="known gap: with the copy's feet aligned on the floor (commit 8d173bc) the copy "

@@ -124,20 +124,15 @@ def test_static_character_is_valid(character_files: list[Path], tmp_path: Path) 
     np.testing.assert_allclose(back.character.vertices.numpy(), ch.vertices.numpy(), atol=1e-6)
 
 
-def test_write_read_timing(character_files: list[Path], tmp_path: Path) -> None:
-    """Reading a shared character and writing it with a 300-frame motion both take well under a second."""
-    t0 = time.perf_counter()
+def test_a_300_frame_clip_round_trips(character_files: list[Path], tmp_path: Path) -> None:
+    """A shared character written with a 300-frame motion reads back with every frame and the same poses."""
     ch = read_gltf_character(character_files[0])
-    t_read = time.perf_counter() - t0
     motion = _arm_motion(ch.skeleton, 300)
-    t0 = time.perf_counter()
     write_glb(ch, motion, tmp_path / "long.glb")
-    t_write = time.perf_counter() - t0
-    t0 = time.perf_counter()
     back = read_gltf(tmp_path / "long.glb")
-    t_read_anim = time.perf_counter() - t0
-    print(f"read {t_read:.3f} s, write 300 frames {t_write:.3f} s, read back with animation {t_read_anim:.3f} s")
     assert back.motions[0].num_frames == 300
+    dot = (back.motions[0].rotations * motion.rotations).sum(-1).abs()
+    assert bool((dot > 1 - 1e-5).all())  # the same rotations (q and -q alike)
 
 
 # ----- writer details ------------------------------------------------------------------------------------------------

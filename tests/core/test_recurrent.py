@@ -78,7 +78,7 @@ def test_shipped_weights_retarget_a_sample_clip(ctx: RefineContext) -> None:
     out = recurrent.run(ctx, ctx.before)
     assert out.motion.rotations.shape == ctx.before.rotations.shape
     assert torch.isfinite(out.motion.rotations).all() and torch.isfinite(out.motion.translations).all()
-    assert out.report["ms_per_frame"] > 0 and 0 <= out.report["frames_changed"] <= FRAMES
+    assert 0 < out.report["frames_changed"] <= FRAMES  # a bulky target: the network changes the copy
     # A residual, not a new motion: joints stay within a few tens of degrees of the copy.
     assert out.report["max_joint_change_deg"] < 60
 
@@ -106,7 +106,8 @@ def test_pipeline_runs_recurrent_and_eso_when_switched_on(prepared: Prepared) ->
 
     opts = RetargetOptions(frame_end=FRAMES, eso_iterations=6, stages={"recurrent": True, "eso": True})
     result = pipeline.refine(prepared, options=opts)
-    assert result.stages_run[-2:] == ["recurrent", "eso"] or {"recurrent", "eso"} <= set(result.stages_run)
+    refining = [s for s in result.stages_run if s in ("recurrent", "eso", "collisions", "foot_lock")]
+    assert refining == ["recurrent", "eso", "collisions", "foot_lock"]  # the registry's order
     assert result.stage_reports["eso"]["iterations"] == 6
     assert result.after.num_frames == prepared.before.num_frames
 
