@@ -107,8 +107,7 @@ def prepare_source(inputs: JobInputs, max_frames: int | None = None, skip_frames
 def _as_in_file(source: LoadedMotion, body: LoadedCharacter, view: Motion) -> Motion:
     """``view`` (the source on its body, placed on its own feet) at the height it has in the source file, when the
     file carries the body (glTF/GLB/FBX): the judge reads a source file in its own coordinates, and a foot 4 cm
-    above the file's floor is not planted for it (dance 005_17: foot lock planted it and foot accuracy fell from
-    0.985 to 0.85, measured). BVH sources (no body in the file) are left as they stand."""
+    above the file's floor is not planted for it. BVH sources (no body in the file) are left as they stand."""
     if body is not source.source_character or view.num_frames != source.motion.num_frames:
         return view
     root = [j for j, p in enumerate(view.skeleton.parents) if p < 0]  # a root's position is its translation
