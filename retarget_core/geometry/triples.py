@@ -43,7 +43,8 @@ def sentinel_vertices(sdf: PartSDF, rest_vertices: Tensor, cell_m: float, segmen
     _, first = torch.unique(vc.of_vertex[idx], return_inverse=True)
     chosen = torch.zeros(int(first.max()) + 1 if len(first) else 0, dtype=torch.long)
     chosen[first.flip(0)] = idx.flip(0)
-    return chosen[keep_cluster[parts.vertex_part[chosen]]]
+    chosen = chosen[keep_cluster[parts.vertex_part[chosen]]]
+    return chosen if parts.body is None else chosen[parts.body[chosen]]  # accessories are never sentinels
 
 
 @dataclass

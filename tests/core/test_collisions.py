@@ -361,3 +361,26 @@ def test_posing_only_the_rows_an_energy_reads_matches_posing_every_point(bulky: 
     got = pose_rows(poser.plan(frames, rows, mats.shape[1]), mats)
     assert torch.allclose(got, posed[frames, rows], atol=1e-5)
     assert not torch.allclose(got[0], got[1])  # different rows, different places
+
+
+def test_accessory_vertices_are_never_tested_nor_sentinels(bulky: Character) -> None:
+    """A hand in the belly counts as penetration; the same hand marked as an accessory mesh (a glove, a prop)
+    does not, and no sentinel lies on it."""
+    from dataclasses import replace
+
+    from retarget_core.geometry.triples import sentinel_vertices
+
+    motion, _, _ = _hand_in_belly(bulky, 0.03, 2)
+    ctx = _context(bulky, motion)
+    hand = ctx.parts.part_vertices(ctx.parts.index("LeftHand"))
+    frames = torch.arange(2)
+    none = contact_instances(ctx.sdf, no_contacts(2))
+    whole = check_frames(bulky, ctx.sdf, motion.rotations, motion.translations, frames, none, 0.003)
+    assert float(whole.depth[:, hand].max()) > 0.01
+    body = torch.ones(bulky.num_vertices, dtype=torch.bool)
+    body[hand] = False
+    sdf = replace(ctx.sdf, parts=replace(ctx.parts, body=body))
+    gloved = check_frames(bulky, sdf, motion.rotations, motion.translations, frames, none, 0.003)
+    assert float(gloved.depth[:, hand].abs().max()) == 0.0
+    assert not bool(torch.isin(sentinel_vertices(sdf, bulky.vertices.float(), 0.03), hand).any())
+    assert bool(torch.isin(sentinel_vertices(ctx.sdf, bulky.vertices.float(), 0.03), hand).any())
