@@ -184,7 +184,9 @@ def measure_source(
         fps=source_view.fps,
         penetrating_vertices_percent=round(float(depth.count_above(tol).sum()) * 100.0 / pen_count, 4) if f_n else None,
         penetrating_vertices_percent_by_part={n: round(float(part_means[c]), 4) for c, n in enumerate(CLUSTERS)},
-        penetration_max_depth=measure(float(depth.max()) * cm if depth.numel() else None, k, "cm"),
+        penetration_max_depth=measure(
+            float(depth.frame_max().max()) * cm if f_n and depth.num_vertices else None, k, "cm"
+        ),
         hand_depth_max=measure(float(hand_max.max()) * cm if f_n else None, k, "cm"),
         hand_inside_frames_percent=_percent(hand_inside),
         hand_inside_frames_percent_by_hand={h: _percent(d > th.hand_depth_m / k) for h, d in hand_depth.items()},
