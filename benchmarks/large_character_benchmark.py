@@ -38,28 +38,32 @@ TIME_RATIO_TARGET = 3.0
 MEMORY_TARGET_MB = 1536.0
 
 
-def memory_job(glb: Path, motion: Path, frames: int) -> dict[str, Any]:
-    """Peak RSS (MB) of a fresh process running one ``frames``-frame default-chain job at the clip's rate."""
+def memory_job(glb: Path, motion: Path, frames: int, chain: str) -> dict[str, Any]:
+    """Peak RSS (MB) of a fresh process running one ``frames``-frame job at the clip's rate; ``chain``:
+    ``default`` or ``copy`` (every refinement stage off: reading, contacts, body, metrics and writing)."""
     code = (
         "import json, resource, sys, tempfile, time\n"
         "from pathlib import Path\n"
         "from retarget_core.jobs import JobInputs\n"
         "from retarget_core.options import RetargetOptions\n"
         "from retarget_core.pipeline import run_job\n"
-        "glb, motion, frames = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])\n"
+        "from retarget_core.stages import REFINEMENT_STAGE_NAMES\n"
+        "glb, motion, frames, chain = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4]\n"
+        "extra = {} if chain == 'default' else {'stages': {n: False for n in REFINEMENT_STAGE_NAMES}}\n"
         "with tempfile.TemporaryDirectory() as tmp:\n"
         "    t = time.perf_counter()\n"
-        "    out = run_job(JobInputs(motion, glb, options=RetargetOptions(frame_end=frames)), Path(tmp))\n"
+        "    out = run_job(JobInputs(motion, glb, options=RetargetOptions(frame_end=frames, **extra)), Path(tmp))\n"
         "    wall = time.perf_counter() - t\n"
         "    n = json.loads(out.metrics_json.read_text())['frames']\n"
         "print(json.dumps({'frames': n, 'wall_s': round(wall, 2), 'stage_s': out.stage_seconds,\n"
         "                  'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code, str(glb), str(motion), str(frames)], capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", code, str(glb), str(motion), str(frames), chain], capture_output=True,
                           text=True, cwd=REPO, check=False)  # fmt: skip
     if proc.returncode != 0:
         raise RuntimeError(f"the {frames}-frame job failed: {proc.stderr[-2000:]}")
     out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["chain"] = chain
     out["peak_rss_mb_children"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)
     return out
 
@@ -85,6 +89,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2, help="timed jobs; the first one builds the body cache")
     ap.add_argument("--memory-motion", type=Path, default=DATA / "motions" / "cmu" / "001_01.bvh")
     ap.add_argument("--memory-frames", type=int, default=1000, help="0: skip the memory job")
+    ap.add_argument("--memory-chain", choices=("default", "copy"), default="default",
+                    help="the memory job's stages (copy: every refinement stage off)")
     ap.add_argument("--bulky", type=Path, default=REPO / "benchmarks" / "results" / "job_benchmark.json")
     ap.add_argument("--run-bulky", action="store_true", help="time the bulky sample here instead of reading it")
     ap.add_argument("--profile", action="store_true", help="profile one warm job (pyinstrument)")
@@ -106,7 +112,7 @@ def main() -> None:
               f"{', '.join(r['body_cache'] for r in runs)}):")  # fmt: skip
         for k, v in large.items():
             print(f"  {k:<20} {v:9.2f} ms/frame")
-        memory = memory_job(glb, args.memory_motion, args.memory_frames) if args.memory_frames else None
+        memory = memory_job(glb, args.memory_motion, args.memory_frames, args.memory_chain) if args.memory_frames else None
         if args.profile:
             profile(glb, args)
     bulky = bulky_reference(args)
@@ -122,7 +128,8 @@ def main() -> None:
     }  # fmt: skip
     print(f"\nwhole job {large['whole job']} ms/frame = {ratio:.2f} x the bulky sample's (target {TIME_RATIO_TARGET})")
     if memory:
-        print(f"peak memory, {memory['frames']} frames: {memory['peak_rss_mb']} MB (target {MEMORY_TARGET_MB:.0f})")
+        print(f"peak memory, {memory['frames']} frames, {memory['chain']} chain: {memory['peak_rss_mb']} MB "
+              f"(target {MEMORY_TARGET_MB:.0f})")  # fmt: skip
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(out, indent=1))
     print(f"wrote {args.output}")
