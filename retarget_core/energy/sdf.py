@@ -294,7 +294,7 @@ def sample_pairs(
     vertices: Tensor | None = None,
     inside_only: bool = False,
 ) -> PairSamples:
-    """Blended signed distances of posed vertices ``(F, V, 3)`` to segments, for every allowed pair (vertex
+    """Blended signed distances of posed body vertices ``(F, V, 3)`` to segments, for every allowed pair (vertex
     part i, segment j) where the vertex may lie within the grid margin of j. ``seg_mats (F, S, 3, 4)`` from
     :func:`segment_matrices`. Vertices not sampled are farther from the segment than the grid margin.
     ``vertices (N,)``: when given, ``posed`` is ``(F, N, 3)``, those vertices only (they must include every
@@ -383,7 +383,16 @@ def sample_pairs(
     if not frames:
         empty = torch.zeros(0, dtype=torch.long)
         return PairSamples(empty, empty, empty, posed.new_zeros(0))
-    return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
+    return body_samples(sdf, PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists)))
+
+
+def body_samples(sdf: PartSDF, samples: PairSamples) -> PairSamples:
+    """``samples`` of body vertices only: accessory meshes (eyes, garments, props) are never tested."""
+    body = sdf.parts.body
+    if body is None:
+        return samples
+    keep = body.index_select(0, samples.vertex)
+    return PairSamples(samples.frame[keep], samples.vertex[keep], samples.part[keep], samples.distance[keep])
 
 
 def segment_distance(sdf: PartSDF, seg: int, points: Tensor) -> Tensor:

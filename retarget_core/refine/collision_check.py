@@ -83,7 +83,7 @@ def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translat
             grot, gpos = kinematics.forward_kinematics(character.skeleton.parents, rotations[fr], translations[fr])
             verts = character.pose_vertices(grot, gpos)
             mats = segment_matrices(character, parts, grot, gpos)
-            samples = body_samples(sdf, sample_pairs(sdf, verts, mats, allowed))
+            samples = sample_pairs(sdf, verts, mats, allowed)
             d = vertex_depths(sdf, samples, len(fr))
             depth[s : s + len(fr)] = d
             vol[s : s + len(fr)] = (d * area).sum(-1)
@@ -94,15 +94,6 @@ def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translat
                 if len(sel):
                     contact[sel] = _contact_distance(sdf, samples, contacts, sel, c_pos[sel] - s, cluster)
     return FrameCheck(frames, vol, mx, cnt, depth, contact)
-
-
-def body_samples(sdf: PartSDF, samples: PairSamples) -> PairSamples:
-    """``samples`` of body vertices only: accessory meshes (eyes, garments, props) are never tested."""
-    body = sdf.parts.body
-    if body is None:
-        return samples
-    keep = body.index_select(0, samples.vertex)
-    return PairSamples(samples.frame[keep], samples.vertex[keep], samples.part[keep], samples.distance[keep])
 
 
 def _contact_distance(sdf: PartSDF, samples: PairSamples, contacts: ContactInstances, sel: Tensor, local_frame: Tensor,
@@ -189,7 +180,6 @@ __all__ = [
     "ContactInstances",
     "FrameCheck",
     "WorseLimits",
-    "body_samples",
     "check_frames",
     "contact_instances",
     "worse_frames",
