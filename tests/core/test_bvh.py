@@ -107,15 +107,14 @@ def test_shared_file_root_translation_is_offset_plus_channels(shared_motions: Pa
     assert torch.equal(motion.translations[:, 1], motion.skeleton.rest_translations[1].expand(motion.num_frames, 3))
 
 
-def test_parse_time_of_largest_shared_file(shared_motions: Path) -> None:
+def test_largest_shared_file_parses_whole(shared_motions: Path) -> None:
+    """The largest shared BVH reads with every frame its header declares and finite values (its time is the
+    benchmarks' business, not a test's)."""
     largest = max(shared_motions.glob("*/*.bvh"), key=lambda p: p.stat().st_size)
-    read_bvh(largest)  # warm up imports
-    start = time.perf_counter()
-    read_bvh(largest)
-    seconds = time.perf_counter() - start
-    megabytes = largest.stat().st_size / 1e6
-    # Timing is reported, not asserted (shared machines); the bound on hostile input is the timeout marker.
-    print(f"\nparsed {largest.name} ({megabytes:.1f} MB) in {seconds:.3f} s")
+    declared = int(next(line for line in largest.read_text().splitlines() if line.strip().startswith("Frames:")).split(":")[1])
+    motion = read_bvh(largest)
+    assert motion.num_frames == declared
+    assert bool(torch.isfinite(motion.rotations).all()) and bool(torch.isfinite(motion.translations).all())
 
 
 # ------------------------------------------------------------------------------------ known answers
