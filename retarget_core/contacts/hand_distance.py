@@ -31,7 +31,7 @@ Costs about 1 to 3 ms per frame on the 13k-vertex bodies (benchmarks/results/con
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -104,6 +104,14 @@ class HandPartGeometry:
     hand_chunk_dense: Tensor
     hand_local: Tensor
     hand_width: int
+    hand_flat: Tensor = field(init=False)  # (N,) the hands' vertices, hand after hand
+    hand_starts: Tensor = field(init=False)  # (2,) where each hand starts in hand_flat
+    hand_sizes: Tensor = field(init=False)  # (2,) vertices per hand
+
+    def __post_init__(self) -> None:
+        self.hand_sizes = torch.tensor([len(v) for v in self.hand_vertices], dtype=torch.long)
+        self.hand_starts = torch.cumsum(self.hand_sizes, 0) - self.hand_sizes
+        self.hand_flat = torch.cat(self.hand_vertices) if self.hand_vertices else torch.zeros(0, dtype=torch.long)
 
 
 @dataclass
@@ -281,16 +289,16 @@ def _edge_points(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
 
 def _flat_sphere(x: Tensor, group: Tensor, member: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
     """Centre ``(B, C, 3)`` (mean) and radius ``(B, C)`` of the posed points ``x (B, N, 3)`` of each group
-    (flat memberships ``group``, ``member`` ``(M,)``; ``count (C,)`` members per group): cheaper than
-    :func:`_sphere` for groups of very different sizes."""
-    pts = x[:, member]  # (B, M, 3)
-    centre = torch.zeros(x.shape[0], len(count), 3, dtype=x.dtype).index_add_(1, group, pts)
-    centre = centre / count.clamp_min(1).to(x.dtype)[None, :, None]
-    spread = (pts - centre[:, group]).norm(dim=-1)
-    r = torch.zeros(x.shape[0], len(count), dtype=x.dtype).scatter_reduce_(
-        1, group[None].expand(x.shape[0], -1), spread, "amax"
-    )
-    return centre, r
+    (flat memberships ``group``, ``member`` ``(M,)``, ``group`` sorted; ``count (C,)`` members per group): cheaper
+    than :func:`_sphere` for groups of very different sizes."""
+    bsz = x.shape[0]
+    rows = x.transpose(0, 1).reshape(x.shape[1], bsz * 3)  # one row per point: gathers and sums run on rows
+    pts = rows.index_select(0, member)  # (M, B*3)
+    centre = torch.zeros(len(count), bsz * 3, dtype=x.dtype).index_add_(0, group, pts)
+    centre = centre / count.clamp_min(1).to(x.dtype)[:, None]
+    spread = (pts - centre.index_select(0, group)).view(-1, bsz, 3).norm(dim=-1)  # (M, B)
+    r = torch.segment_reduce(spread, "max", lengths=count, axis=0).clamp_min(0.0)  # an empty group: 0
+    return centre.view(-1, bsz, 3).transpose(0, 1), r.transpose(0, 1)
 
 
 def _memberships(members: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -345,15 +353,15 @@ class _HandTree:
         span = float((x.amax((0, 1)) - x.amin((0, 1))).max()) + 1.0
         self.step = 4.0 * span  # a query in its own cell is nearer to it than to any other cell
         self.hands = len(geom.hands)
-        pts, cell, vertex = [], [], []
-        for c in cells.tolist():  # only the (frame, hand) cells that are queried
-            v = geom.hand_vertices[c % self.hands]
-            pts.append(x[c // self.hands, v].numpy())
-            cell.append(np.full(len(v), c))
-            vertex.append(v.numpy())
-        cell_of_point = np.concatenate(cell)
-        self.vertex = np.concatenate(vertex)
-        self.tree = cKDTree(np.concatenate(pts) + self._offset(cell_of_point))
+        # Only the (frame, hand) cells that are queried, each cell's vertices in its hand's order.
+        hand = cells % self.hands
+        sizes = geom.hand_sizes[hand]
+        cell_of_point = torch.repeat_interleave(cells, sizes)
+        within = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+        vertex = geom.hand_flat[geom.hand_starts[cell_of_point % self.hands] + within]
+        self.vertex = vertex.numpy()
+        pts = x.reshape(-1, 3).index_select(0, (cell_of_point // self.hands) * x.shape[1] + vertex).numpy()
+        self.tree = cKDTree(pts + self._offset(cell_of_point.numpy()))
 
     def _offset(self, cells: np.ndarray) -> np.ndarray:
         out = np.zeros((len(cells), 3))
