@@ -51,6 +51,9 @@ class MetricParams:
     penetration_tolerance_m: float = 0.003
     contact_tolerance_m: float = 0.01
     frame_chunk: int = 64
+    # Posed vertices x frames measured at once: 64 frames of a 13k-vertex body; fewer frames on larger bodies,
+    # so the working memory stays bounded (a 53k-vertex body: 16 frames).
+    chunk_vertex_frames: int = 850_000
 
 
 @dataclass
@@ -156,7 +159,9 @@ def measure_clip(
         grot, gpos = motion.global_transforms()
         if reuse is not None and bool(same.any()):
             out.copy(torch.nonzero(same).flatten(), reuse.measures, ground, hands)  # type: ignore[arg-type]
-        for frames in frame_chunks(torch.nonzero(~same).flatten(), params.frame_chunk):
+        posed_n = parts.body_count
+        chunk = max(1, min(params.frame_chunk, params.chunk_vertex_frames // max(posed_n, 1)))
+        for frames in frame_chunks(torch.nonzero(~same).flatten(), chunk):
             out.measure(character, sdf, grot[frames], gpos[frames], frames, hands, cull_hands)
         _, rest_pos = character.skeleton.rest_global()
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
