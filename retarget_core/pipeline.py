@@ -23,6 +23,7 @@ from torch import Tensor
 from retarget_core.body_cache import body_assets
 from retarget_core.contacts.foot_contact import FOOT_JOINTS, FootContacts
 from retarget_core.copy_retarget import copy_retarget
+from retarget_core.extras import refresh_twists, transfer_notes
 from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
@@ -157,6 +158,7 @@ def prepare(
     with clock.stage("body"):
         assets, cached = body_assets(target.character, target.mapping)
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
+    warnings += transfer_notes(source.mapping, target.mapping)
     return Prepared(inputs, source, body, target, source_view, found, constraints, target_feet, before, assets,
                     warnings, cached, source_planted)  # fmt: skip
 
@@ -196,6 +198,8 @@ def refine(prepared: Prepared, clock: StageClock | None = None, options: Retarge
         motion = outcome.motion
         reports[info.name] = {**outcome.report, "seconds": clock.seconds[info.name]}
         run.append(info.name)
+    if motion is not prepared.before:
+        motion = refresh_twists(motion, prepared.target.mapping)  # twist bones follow the limbs the stages turned
     if skipped:
         warnings.append(f"stages {', '.join(skipped)} are not available in this version and were skipped")
     if motion is prepared.before:
