@@ -352,3 +352,86 @@ def test_transfer_contacts_maps_every_pair(skinny_bulky) -> None:
     assert torch.equal(cons.frame, sc.frame.repeat_interleave(3))
     part = cons.select_frames(1, 3)
     assert part.num_frames == 2 and part.count == 6 and int(part.frame.max()) == 1
+
+
+# --- hand-to-part distances against brute force ----------------------------------------------------------
+
+
+def _winding(p: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
+    """Generalized winding number ``(N,)`` of points ``p (N, 3)`` for the closed triangles ``tri (T, 3, 3)``
+    (Van Oosterom and Strackee's solid angle; about 1 inside, 0 outside whatever the orientation's sign)."""
+    out = torch.zeros(len(p), dtype=p.dtype)
+    for s in range(0, len(p), 64):
+        a, b, c = (tri[None, :, k] - p[s : s + 64, None] for k in range(3))  # (n, T, 3)
+        la, lb, lc = a.norm(dim=-1), b.norm(dim=-1), c.norm(dim=-1)
+        num = (a * torch.linalg.cross(b, c)).sum(-1)
+        den = la * lb * lc + (a * b).sum(-1) * lc + (a * c).sum(-1) * lb + (b * c).sum(-1) * la
+        out[s : s + 64] = (2 * torch.atan2(num, den)).sum(1).abs() / (4 * np.pi)
+    return out
+
+
+def _brute_vertex_distances(p: torch.Tensor, tri: torch.Tensor, reach: float) -> torch.Tensor:
+    """Exact distance ``(N,)`` of each point of ``p (N, 3)`` to the triangles ``tri (T, 3, 3)``, inf beyond
+    ``reach``: every (point, triangle) pair whose bounding sphere is within reach, no other culling."""
+    from retarget_core.contacts.hand_distance import closest_points
+
+    centre = tri.mean(1)
+    radius = (tri - centre[:, None]).norm(dim=-1).amax(-1)
+    out = torch.full((len(p),), float("inf"), dtype=p.dtype)
+    for s in range(0, len(p), 256):
+        i, t = torch.nonzero(torch.cdist(p[s : s + 256], centre) - radius <= reach, as_tuple=True)
+        q = closest_points(p[s + i], tri[t, 0], tri[t, 1], tri[t, 2])
+        d = (p[s + i] - q).norm(dim=-1)
+        out[s : s + 256] = torch.full((min(256, len(p) - s),), float("inf"), dtype=p.dtype).scatter_reduce(0, i, d, "amin")
+    return out
+
+
+def _check_against_brute_force(geom, x: torch.Tensor, got, f: int) -> int:  # type: ignore[no-untyped-def]
+    """Asserts frame ``f`` of ``got`` (HandPartDistances) on the posed frame ``x (V, 3)``; returns the number of
+    (hand, part) pairs found within the cutoff."""
+    cutoff, slack = got.max_distance, 0.005 * got.max_distance / 0.05
+    centres = torch.zeros(len(geom.ring_count), 3, dtype=x.dtype).index_add_(0, geom.ring_cap, x[geom.ring_vertex])
+    ext = torch.cat([x, centres / geom.ring_count.clamp_min(1).to(x.dtype)[:, None]])
+    near = 0
+    for h, hv in enumerate(geom.hand_vertices):
+        for c in range(len(geom.parts)):
+            if not bool(geom.measured[h, c]):
+                assert torch.isinf(got.distance[f, h, c])
+                continue
+            tri = ext[geom.faces[geom.face_part == c]]
+            dv = _brute_vertex_distances(x[hv], tri, cutoff + slack)
+            dmin = float(dv.min())
+            cand = dv <= cutoff
+            wind = _winding(x[hv][cand], tri) if bool(cand.any()) else torch.zeros(0, dtype=x.dtype)
+            inside_any = bool((wind > 0.5).any())
+            inside_near = bool((wind[dv[cand] <= dmin + slack] > 0.5).any())
+            d, ins = float(got.distance[f, h, c]), bool(got.inside[f, h, c])
+            assert ins == (d == 0.0)
+            assert not ins or inside_any, (f, h, c)  # inside only where a hand vertex is inside
+            assert ins or not inside_near, (f, h, c)  # a vertex inside within the slack of the closest is seen
+            if ins or dmin <= cutoff:
+                near += 1
+                assert ins or d == pytest.approx(dmin, abs=1e-12), (f, h, c, d, dmin)
+                k = got.pairs.shape[-2]
+                want = torch.sort(dv).values[:k]
+                assert torch.allclose(got.pair_distance[f, h, c], want, atol=1e-12), (f, h, c)
+                hand_local = geom.hand_local[got.pairs[f, h, c, :, 0]]
+                assert torch.allclose(dv[hand_local], want, atol=1e-12)
+                assert bool(((got.pairs[f, h, c, :, 1] >= 0) & (got.pairs[f, h, c, :, 1] < geom.num_vertices)).all())
+            else:
+                assert d == float("inf") and bool((got.pairs[f, h, c] == -1).all()), (f, h, c, d, dmin)
+    return near
+
+
+def test_hand_part_distances_match_brute_force(average, placed) -> None:
+    """Every distance, inside flag and closest pair of the culled search equals an uncull brute force (exact
+    point-triangle distances of every pair in reach, inside by winding number) on hand poses near the body."""
+    from retarget_core.contacts.hand_distance import hand_part_geometry
+
+    ch, _, parts = average
+    posed = torch.stack([placed["hip"], placed["cheek"], placed["slide"][0], placed["slide"][3], placed["rest"]])
+    posed = posed.double()
+    geom = hand_part_geometry(parts, ch.vertices, ch.height)
+    got = hand_part_distances(None, parts, posed, geometry=geom, height=ch.height)
+    near = sum(_check_against_brute_force(geom, posed[f], got, f) for f in range(len(posed)))
+    assert near >= 4 and bool(got.inside[1, 0].any())  # the cheek frame: the left hand sunk into the head
