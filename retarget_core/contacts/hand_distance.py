@@ -433,12 +433,16 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     probe = nearest.distance(ext[vb, verts[ok]], vb, h[best][:, None].expand_as(verts)[ok])
     upper = _group_min(probe, g[best][:, None].expand_as(verts)[ok], n_g, upper)
     keep = lower <= torch.clamp(upper[g], max=cutoff) + slack
-    b, h, q, g = b[keep], h[keep], q[keep], g[keep]
+    b, h, q, g, dq = b[keep], h[keep], q[keep], g[keep], dn[keep]
     # Level C: their triangles, the same way (a triangle's centroid is on the surface: an upper bound too).
-    t, b, h, g = _expand(geom.tri_chunks, q, b, h, g)
+    t, b, h, g, j = _expand(geom.tri_chunks, q, b, h, g, torch.arange(len(q)))
     tri = ext[b[:, None], geom.faces[t]]  # (N, 3, 3)
     t_c = tri.mean(1)
     t_r = (tri - t_c[:, None]).norm(dim=-1).amax(-1)
+    # Triangles that the chunk's nearest hand distance already puts beyond the bound are not queried: their own
+    # query could neither pass the test below nor lower the bound (triangle inequality, 1 nm for rounding).
+    reach = dq[j] - (t_c - tc_c[b, q[j]]).norm(dim=-1) - t_r <= upper[g] + slack + 1e-9
+    b, h, g, t, t_c, t_r, tri = (y[reach] for y in (b, h, g, t, t_c, t_r, tri))
     dn, vn = nearest.nearest(t_c, b, h)
     upper = _group_min(dn, g, n_g, upper)
     keep = dn - t_r <= upper[g] + slack
