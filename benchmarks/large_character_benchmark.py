@@ -5,7 +5,8 @@
    per-body cache): stage seconds of the last run, in ms per frame, beside the bulky sample's default chain
    (read from ``--bulky`` (benchmarks/results/job_benchmark.json), or run here with ``--run-bulky``).
 3. A ``--memory-frames`` (1000) job of ``--memory-motion`` at the clip's own rate in a fresh process: its peak
-   resident memory (``resource.getrusage`` max RSS of the child; torch's allocations included).
+   resident memory (``VmHWM`` of /proc/self/status: ``ru_maxrss`` would keep the parent's peak across exec).
+   ``--runs 0``: only this job, written into the existing JSON's ``memory``.
 4. ``--profile``: one warm job under pyinstrument, its call tree next to the JSON.
 
     flock /tmp/heavy.lock python benchmarks/large_character_benchmark.py [-o out.json]
@@ -20,7 +21,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -55,8 +55,9 @@ def memory_job(glb: Path, motion: Path, frames: int, chain: str) -> dict[str, An
         "    out = run_job(JobInputs(motion, glb, options=RetargetOptions(frame_end=frames, **extra)), Path(tmp))\n"
         "    wall = time.perf_counter() - t\n"
         "    n = json.loads(out.metrics_json.read_text())['frames']\n"
+        "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\n"
         "print(json.dumps({'frames': n, 'wall_s': round(wall, 2), 'stage_s': out.stage_seconds,\n"
-        "                  'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
+        "                  'peak_rss_mb': round(int(hwm) / 1024, 1)}))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code, str(glb), str(motion), str(frames), chain], capture_output=True,
                           text=True, cwd=REPO, check=False)  # fmt: skip
@@ -64,7 +65,6 @@ def memory_job(glb: Path, motion: Path, frames: int, chain: str) -> dict[str, An
         raise RuntimeError(f"the {frames}-frame job failed: {proc.stderr[-2000:]}")
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     out["chain"] = chain
-    out["peak_rss_mb_children"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)
     return out
 
 
@@ -99,6 +99,9 @@ def main() -> None:
     from retarget_core.bodies.large_character import write_large_character
     from retarget_core.loading import load_character
 
+    if args.runs == 0:
+        memory_only(args)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         glb = write_large_character(Path(tmp) / "large_character.glb")
         character = load_character(glb).character
@@ -133,6 +136,20 @@ def main() -> None:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(out, indent=1))
     print(f"wrote {args.output}")
+
+
+def memory_only(args: argparse.Namespace) -> None:
+    """``--runs 0``: the memory job alone, its result written into the existing JSON."""
+    from retarget_core.bodies.large_character import write_large_character
+
+    with tempfile.TemporaryDirectory() as tmp:
+        memory = memory_job(write_large_character(Path(tmp) / "large_character.glb"), args.memory_motion,
+                            args.memory_frames, args.memory_chain)  # fmt: skip
+    data = json.loads(args.output.read_text()) if args.output.is_file() else {}
+    data["memory"], data[f"memory_{args.memory_chain}_chain"] = memory, memory
+    data["memory_target_mb"] = MEMORY_TARGET_MB
+    args.output.write_text(json.dumps(data, indent=1))
+    print(f"peak memory, {memory['frames']} frames, {memory['chain']} chain: {memory['peak_rss_mb']} MB; wrote {args.output}")
 
 
 def profile(glb: Path, args: argparse.Namespace) -> None:
