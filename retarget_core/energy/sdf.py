@@ -391,6 +391,8 @@ def body_samples(sdf: PartSDF, samples: PairSamples) -> PairSamples:
     body = sdf.parts.body
     if body is None:
         return samples
+    if body.shape[0] != sdf.parts.vertex_part.shape[0]:
+        raise ValueError("the parts' body mask and vertices differ in length: a vertex subset must subset both")
     keep = body.index_select(0, samples.vertex)
     return PairSamples(samples.frame[keep], samples.vertex[keep], samples.part[keep], samples.distance[keep])
 

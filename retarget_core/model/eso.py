@@ -95,7 +95,9 @@ def sentinels(kit: en.BodyKit, cluster_m: float = 0.04) -> Sentinels:
     cl = vertex_clusters(rest, sdf.parts.vertex_part, size)
     first = cl.members[:, 0]
     idx = torch.sort(first[first >= 0]).values
-    parts = replace(sdf.parts, vertex_part=sdf.parts.vertex_part[idx], weights=sdf.parts.weights[idx])
+    if sdf.parts.body is not None:
+        idx = idx[sdf.parts.body[idx]]  # accessories are never sentinels
+    parts = replace(sdf.parts, vertex_part=sdf.parts.vertex_part[idx], weights=sdf.parts.weights[idx], body=None)
     sub_rest = rest[idx]
     scale = float(sdf.vertex_area.sum() / sdf.vertex_area[idx].sum().clamp_min(1e-12))
     sub = replace(

@@ -500,7 +500,8 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
     grot, gpos = grot[frames], gpos[frames]
     with torch.no_grad():
         # Only leg vertices are tested: pose those alone.
-        index = torch.nonzero(legs[parts.vertex_part]).flatten()
+        leg = legs[parts.vertex_part] if parts.body is None else legs[parts.vertex_part] & parts.body
+        index = torch.nonzero(leg).flatten()
         posed = ctx.target.pose_vertex_subset(index, grot, gpos)
         mats = segment_matrices(ctx.target, parts, grot, gpos)
         samples = sample_pairs(ctx.sdf, posed, mats, allowed, vertices=index, inside_only=True)
