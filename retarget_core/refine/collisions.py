@@ -263,9 +263,10 @@ def never_worse_pass(s: Solve) -> Tensor:
 
     def repair(after: FrameCheck, worse: Tensor) -> Tensor | None:
         mended = repair_round(s, after, worse, current["resid"])
-        if mended is not None:
-            current["resid"], mended = mended
-        return mended
+        if mended is None:
+            return None
+        current["resid"] = mended[0]
+        return mended[1]
 
     fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
                                 at_fps(p.fallback_ramp, s.motion.fps), p.fallback_smooth)  # fmt: skip
@@ -279,6 +280,7 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor, resid: Tensor) -> t
     optimiser, join the points; the finishing steps run again on the knots under those frames. The new residual
     and the frames to measure again, or None when no vertex was missing."""
     assert s.prob is not None and s.points is not None and s.basis is not None and s.guard is not None
+    assert s.knots is not None and s.exempt is not None
     frames = after.frames
     extra = deepened_points(s.before, after, worse, s.points, s.tol)
     mesh_new = mesh_inside(s.mesh_after, frames[worse], s.tol)
