@@ -355,10 +355,8 @@ def test_joint_name_over_the_limit_is_refused_naming_it(tmp_path: Path) -> None:
     limit = bvh_module.MAX_JOINT_NAME_CHARS
     longest = read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", "JOINT " + "B" * limit), "ok.bvh"))
     assert longest.skeleton.names[1] == "B" * limit
-    start = time.perf_counter()
     with pytest.raises(LimitExceededError, match=f"60000 characters .*limit is {limit}, MAX_JOINT_NAME_CHARS"):
-        read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", "JOINT " + "B" * 60_000)))
-    assert time.perf_counter() - start < 1.0
+        read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", "JOINT " + "B" * 60_000)))  # the timeout is the bound
     spaced = "JOINT " + " ".join(["b"] * (limit // 2 + 1))  # tokens joined by spaces count with their spaces
     with pytest.raises(LimitExceededError, match=f"{limit + 1} characters"):
         read_bvh(_write(tmp_path, CHAIN.replace("JOINT B", spaced)))
