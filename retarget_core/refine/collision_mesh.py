@@ -218,14 +218,19 @@ def plane_distance(sign: Tensor, x: Tensor, a: Tensor, b: Tensor, c: Tensor) -> 
     return sign * ((x - a) * n).sum(-1)
 
 
-def mesh_signed_distance(terms: MeshTerms, posed: Tensor) -> Tensor:
-    """``(N,)`` signed distance (m, positive outside) of each pair's posed point to its posed triangle's plane;
-    ``posed (Fa, P, 3)``."""
+def mesh_rows(terms: MeshTerms, posed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each pair's posed point and triangle corners ``(N, 3)`` each, from ``posed (Fa, P, 3)``."""
     flat = posed.reshape(-1, 3)
     base = terms.frame * posed.shape[1]
     x = flat.index_select(0, base + terms.point)
     a, b, c = (flat.index_select(0, base + terms.tri[:, k]) for k in range(3))
-    return plane_distance(terms.sign, x, a, b, c)
+    return x, a, b, c
+
+
+def mesh_signed_distance(terms: MeshTerms, posed: Tensor) -> Tensor:
+    """``(N,)`` signed distance (m, positive outside) of each pair's posed point to its posed triangle's plane;
+    ``posed (Fa, P, 3)``."""
+    return plane_distance(terms.sign, *mesh_rows(terms, posed))
 
 
 def mesh_energy_rows(terms: MeshTerms, x: Tensor, a: Tensor, b: Tensor, c: Tensor, scale: float,
@@ -240,8 +245,7 @@ def mesh_energy(terms: MeshTerms, posed: Tensor, scale: float, clearance: float)
     """:func:`mesh_energy_rows` on ``posed (Fa, P, 3)``."""
     if terms.count == 0:
         return posed.new_zeros(())
-    d = mesh_signed_distance(terms, posed)
-    return ((clearance - d).clamp_min(0.0) * (100.0 * scale)).pow(2).sum()
+    return mesh_energy_rows(terms, *mesh_rows(terms, posed), scale, clearance)
 
 
 __all__ = [

@@ -48,6 +48,7 @@ from retarget_core.refine.collision_check import (
     contact_instances,
     stage_figures,
 )
+from retarget_core.refine.collision_params import at_fps
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "collisions.pt"
@@ -154,7 +155,7 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
                             allowed=allowed)  # fmt: skip
 
     fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
-                                max(1, round(p.fallback_ramp * motion.fps / 30.0)), smooth=0)  # fmt: skip
+                                at_fps(p.fallback_ramp, motion.fps), smooth=0)  # fmt: skip
     guard = run_never_worse(NeverWorse.start(before, contacts), check_set, measure, p, scale, fallback)
     final, weight = guard.final, guard.weight
     resid = resid * weight[:, None, None]

@@ -253,32 +253,23 @@ def never_worse_pass(s: Solve) -> Tensor:
     """Phase 5: the never-worse check with repair rounds; the final residual ``(F, Jo, 3)``, scaled per frame by
     ``s.guard.weight``."""
     t, p = time.process_time(), s.params
-    resid = s.residual()
-    frames = torch.nonzero(resid.abs().amax(dim=(1, 2)) > p.changed_rad).flatten()
+    frames = torch.nonzero(s.residual().abs().amax(dim=(1, 2)) > p.changed_rad).flatten()
     s.guard = NeverWorse.start(s.before, s.contacts)
-    current = {"resid": resid}
 
     def measure(weight: Tensor, at: Tensor) -> FrameCheck:
-        return s.measure(apply_residual(s.rot_in, s.joints, current["resid"] * weight[:, None, None]), at)
-
-    def repair(after: FrameCheck, worse: Tensor) -> Tensor | None:
-        mended = repair_round(s, after, worse, current["resid"])
-        if mended is None:
-            return None
-        current["resid"] = mended[0]
-        return mended[1]
+        return s.measure(apply_residual(s.rot_in, s.joints, s.residual() * weight[:, None, None]), at)
 
     fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
                                 at_fps(p.fallback_ramp, s.motion.fps), p.fallback_smooth)  # fmt: skip
-    run_never_worse(s.guard, frames, measure, p, s.scale, fallback, repair, p.repair_rounds)
+    run_never_worse(s.guard, frames, measure, p, s.scale, fallback, lambda a, w: repair_round(s, a, w), p.repair_rounds)
     s.timings["check_after"] = time.process_time() - t
-    return current["resid"]
+    return s.residual()
 
 
-def repair_round(s: Solve, after: FrameCheck, worse: Tensor, resid: Tensor) -> tuple[Tensor, Tensor] | None:
+def repair_round(s: Solve, after: FrameCheck, worse: Tensor) -> Tensor | None:
     """The vertices that went deeper on the ``worse`` frames of ``after`` (SDFs or posed torso), unseen by the
-    optimiser, join the points; the finishing steps run again on the knots under those frames. The new residual
-    and the frames to measure again, or None when no vertex was missing."""
+    optimiser, join the points; the finishing steps run again on the knots under those frames. The frames to
+    measure again, or None when no vertex was missing."""
     assert s.prob is not None and s.points is not None and s.basis is not None and s.guard is not None
     assert s.knots is not None and s.exempt is not None
     frames = after.frames
@@ -286,7 +277,7 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor, resid: Tensor) -> t
     mesh_new = mesh_inside(s.mesh_after, frames[worse], s.tol)
     if len(extra) == 0 and (mesh_new is None or mesh_new.count == 0):
         return None
-    t, p = time.process_time(), s.params
+    t, p, resid = time.process_time(), s.params, s.residual()
     ok_contact = after.contact.clone()
     ok_contact[torch.isin(s.contacts.frame, frames[worse])] = float("nan")
     s.guard.merge(FrameCheck(frames[~worse], after.volume[~worse], after.max_depth[~worse], after.count[~worse],
@@ -310,7 +301,7 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor, resid: Tensor) -> t
     nonzero = new.abs().amax(dim=(1, 2)) > p.changed_rad
     s.guard.restore(torch.nonzero(moved & ~nonzero).flatten())  # the input's again
     s.timings["repair_loop"] = s.timings.get("repair_loop", 0.0) + time.process_time() - t
-    return new, torch.nonzero(moved & nonzero).flatten()
+    return torch.nonzero(moved & nonzero).flatten()
 
 
 def deepened_points(before: FrameCheck, after: FrameCheck, worse: Tensor, points: Tensor, tol: float) -> Tensor:
