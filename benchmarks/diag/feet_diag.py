@@ -3,7 +3,7 @@ held-out evaluation sends it) and for the copy baseline ("before") on a body, th
 label (ACCEPTANCE.md): the toe joint's height above its rest height and the lowest foot vertex, in cm at a
 1.80 m character, and the labels themselves.
 
-    PYTHONPATH=. python benchmarks/feet_diag.py \\
+    PYTHONPATH=. python benchmarks/diag/feet_diag.py \\
         ../shared/data/motions/cmu/002_05.bvh ~/.cache/retarget/heldout/heldout_heavy-cdfa1e99e730.glb
 
 ``--frames`` (default 100) caps the clip; ``--json`` writes the series.
@@ -14,7 +14,9 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from heldout_case import case_parser, prepare_case
+import sys  # noqa: E402
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
+from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.character import Character
 from retarget_core.metrics.acceptance import CANONICAL_JOINTS, ClipAcceptance, measure_acceptance

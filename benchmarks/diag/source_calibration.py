@@ -3,9 +3,9 @@
 Every clip (resampled to 30 fps, first 300 frames) on the body the pipeline would give it (the built-in body
 sized to its skeleton), measured with :func:`retarget_core.metrics.source.measure_source`; plus the same clips
 with joint jitter added (Gaussian noise on the root position and small rotation noise on every joint) to see
-where jitter starts. Prints a table and writes benchmarks/results/source_calibration.json.
+where jitter starts. Prints a table and writes benchmarks/diag/results/source_calibration.json.
 
-    flock /tmp/heavy.lock python benchmarks/source_calibration.py [--clips 007_01 002_05 ...]
+    flock /tmp/heavy.lock python benchmarks/diag/source_calibration.py [--clips 007_01 002_05 ...]
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from retarget_core.motion import Motion
 from retarget_core.resample import resample
 from retarget_core.source_body import source_body_for
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 FIGURES = ("hand_inside_frames_percent", "hand_depth_max", "foot_skate", "foot_slide", "foot_slide_frames_percent",
            "ground_below_frames_percent", "ground_penetration_mean", "foot_float_mean", "jerk", "jerk_to_acceleration")  # fmt: skip
 
@@ -57,7 +57,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--clips", nargs="*", default=None)
     ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/results/source_calibration.json"))
+    ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/diag/results/source_calibration.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)
     paths = sorted((SHARED / "motions" / "cmu").glob("*.bvh"))

@@ -5,7 +5,7 @@ for that vertex (weighted, beyond rest), whether the stage optimised the frame a
 weight it kept there. The clip is resampled to 30 fps as `retarget eval` does, so the frames are the
 evaluation's.
 
-    PYTHONPATH=. RETARGET_CACHE_DIR=/tmp/rcache-coll flock /tmp/heavy.lock python benchmarks/collision_diag.py \
+    PYTHONPATH=. RETARGET_CACHE_DIR=/tmp/rcache-coll flock /tmp/heavy.lock python benchmarks/diag/collision_diag.py \
         /work/shared/data/motions/cmu/005_02.bvh /root/.cache/retarget/heldout/heldout_skinny-86cd9535396e.glb
 """
 
@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from heldout_case import case_parser, prepare_case
+import sys  # noqa: E402
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
+from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.geometry.judged_pairs import judged_allowed
 from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measures, measure_acceptance

@@ -3,7 +3,7 @@
 Defaults: a 300-frame piece (at 30 fps) of CMU 02_08 (swordplay, two-hand grips) on the bulky shared body
 (13,380 vertices), the source on the built-in body sized to the clip. Prints a table and writes JSON.
 
-    python benchmarks/metrics_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json]
+    python benchmarks/bench/metrics_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json]
 
 ``--job``: the job's metrics stage instead (``measure_job`` as ``metrics_summary.build_metrics`` calls it, after
 a default-chain refinement of the same clip): the default path against ``every_frame=True`` (every frame and
@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
@@ -49,7 +49,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's own choice)")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "metrics_benchmark.json")
+    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "metrics_benchmark.json")
     ap.add_argument("--job", action="store_true", help="time the job's metrics stage, default vs every frame")
     ap.add_argument("--repeats", type=int, default=2, help="--job: timed runs of each path (the best is kept)")
     args = ap.parse_args()

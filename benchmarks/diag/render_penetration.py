@@ -8,9 +8,9 @@ the part it entered. The title says, per (part, entered part), how many vertices
 counted vertices lie within 3 cm along the rest surface of the part they enter (joint folds: armpit, crotch,
 the neck's crease; the acceptance measure does not count those, so this number should be 0).
 
-    python benchmarks/render_penetration.py ../shared/data/motions/cmu/007_01.bvh \
-        --body ../shared/data/characters/mh_male_bulky.glb --frames 40 120 -o benchmarks/results
-    python benchmarks/render_penetration.py CLIP --body BODY --auto 3   # the 3 frames counting the most
+    python benchmarks/diag/render_penetration.py ../shared/data/motions/cmu/007_01.bvh \
+        --body ../shared/data/characters/mh_male_bulky.glb --frames 40 120 -o benchmarks/diag/results
+    python benchmarks/diag/render_penetration.py CLIP --body BODY --auto 3   # the 3 frames counting the most
 
 Frames are of the clip resampled to 30 fps (as the evaluation does). Writes ``pen_<clip>_<body>_f<frame>.png``
 and prints one JSON line per frame with the figures of the title.
@@ -246,7 +246,7 @@ def main() -> None:
     ap.add_argument("--dead-zone-cm", type=float, default=None,
                     help="the geodesic ramp's fold band (SDFParams.geodesic_dead_zone_m, cm at 1.80 m) to draw with; "
                     "0 draws what the measure counted before the band existed")  # fmt: skip
-    ap.add_argument("-o", "--out-dir", type=Path, default=Path("benchmarks/results"))
+    ap.add_argument("-o", "--out-dir", type=Path, default=Path("benchmarks/diag/results"))
     args = ap.parse_args()
     torch.set_num_threads(1)
     loaded = load_motion(args.motion)

@@ -2,9 +2,9 @@
 cases, measured by the judge (ACCEPTANCE.md, as `retarget eval` measures it) right after the collision stage of
 the default chain (network and ESO before it; the foot lock after it is left out so the stage's own effect shows).
 
-    PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/collision_ablation.py [--frames 100] [--cases N]
+    PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/eval/collision_ablation.py [--frames 100] [--cases N]
 
-Writes benchmarks/results/collision_ablation.json and .md: per variant the mean judged figures over the cases and
+Writes benchmarks/eval/results/collision_ablation.json and .md: per variant the mean judged figures over the cases and
 their change against the defaults, and the stage's CPU time. A setting earns its place when turning it off makes
 a figure the product is judged on worse beyond the spread between cases.
 """
@@ -19,16 +19,18 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from heldout_case import prepare_case
+import sys  # noqa: E402
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
+from benchmarks.common import prepare_case  # noqa: E402
 
 from retarget_core.heldout import body_path, load_split
 from retarget_core.metrics.acceptance import figures_from_measures, measure_acceptance
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions, load_stage
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CLIPS = REPO.parent / "shared" / "data" / "motions" / "cmu"
-OUT = REPO / "benchmarks" / "results" / "collision_ablation"
+OUT = REPO / "benchmarks" / "eval" / "results" / "collision_ablation"
 FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts",
            "end_effector_error_cm", "jerk_ratio", "foot_accuracy")  # fmt: skip
 CASES = (("002_05", "heldout_heavy"), ("002_06", "heldout_tall"), ("002_08", "heldout_bulky"),

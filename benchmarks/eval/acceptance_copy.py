@@ -4,11 +4,11 @@ For every held-out clip (``retarget_core/data/heldout.json``; first ``--max-fram
 source view is the clip copied onto its source body (a bare BVH gets the built-in body fitted to its bones,
 ``source_body.py``; a GLB its own mesh); every held-out body (generated once, cached as GLB) gets the plain
 copy (``copy_retarget``); both are measured with ``retarget_core.metrics.acceptance``. Prints one line per
-clip x body and the time per frame, and writes ``benchmarks/results/acceptance_copy.json``.
+clip x body and the time per frame, and writes ``benchmarks/eval/results/acceptance_copy.json``.
 
 Run it under the heavy-job lock:
 
-    flock /tmp/heavy.lock python benchmarks/acceptance_copy.py
+    flock /tmp/heavy.lock python benchmarks/eval/acceptance_copy.py
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from retarget_core import heldout  # noqa: E402
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clips", nargs="*", help="a subset of the held-out clips (file stems)")
     ap.add_argument("--bodies", nargs="*", help="a subset of the held-out bodies (names)")
     ap.add_argument("--cache", type=Path, default=None, help="where the held-out bodies are cached as GLB")
-    ap.add_argument("-o", "--out", type=Path, default=REPO / "benchmarks" / "results" / "acceptance_copy.json")
+    ap.add_argument("-o", "--out", type=Path, default=REPO / "benchmarks" / "eval" / "results" / "acceptance_copy.json")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     started = time.perf_counter()

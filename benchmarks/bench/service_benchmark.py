@@ -10,8 +10,8 @@ directory and SQLite database, with Redis (a spare database number, flushed) or 
 2. End-to-end throughput: J jobs (a shared clip, F frames, onto a shared character) submitted at once, timed
    from the first submission to the last job finished, with 1 and then 2 cpu worker processes.
 
-    python benchmarks/service_benchmark.py                      # defaults, writes benchmarks/results/service.json
-    python benchmarks/service_benchmark.py --clients 1,8 --duration 3 --jobs 6 --broker embedded
+    python benchmarks/bench/service_benchmark.py                      # defaults, writes benchmarks/bench/results/service.json
+    python benchmarks/bench/service_benchmark.py --clients 1,8 --duration 3 --jobs 6 --broker embedded
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from typing import Any
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from api.db import session_scope  # noqa: E402
@@ -192,7 +192,7 @@ def main() -> None:
     ap.add_argument("--clip", default="motions/cmu/007_03.bvh", help="under the shared data directory")
     ap.add_argument("--character", default="characters/mh_male_bulky.glb")
     ap.add_argument("--broker", choices=("redis", "embedded"), default="redis")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "service.json")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "service.json")
     args = ap.parse_args()
     data = shared_data()
     clients = [int(c) for c in args.clients.split(",")]

@@ -12,8 +12,8 @@ For every database and every level it prints p50/p95/p99 latency, requests/s and
   per-key quota of queued jobs applies; nothing runs them, so a key's queue only grows);
 - ``mixed``: 200 pollers and 64 submitters at once (the target: 0 errors, p99 under 1 s).
 
-    python benchmarks/load_benchmark.py                       # writes benchmarks/results/load.json
-    python benchmarks/load_benchmark.py --databases sqlite --duration 5 --pollers 50,200 --submitters 64
+    python benchmarks/bench/load_benchmark.py                       # writes benchmarks/bench/results/load.json
+    python benchmarks/bench/load_benchmark.py --databases sqlite --duration 5 --pollers 50,200 --submitters 64
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from typing import Any
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from api.db import dispose_all, session_scope  # noqa: E402
@@ -279,7 +279,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per level")
     ap.add_argument("--api-processes", type=int, default=2, help="uvicorn worker processes of the API")
     ap.add_argument("--keep", action="store_true", help="keep the data directory and API log (printed)")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "load.json")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "load.json")
     args = ap.parse_args()
     args.pollers = [int(x) for x in args.pollers.split(",") if x]
     args.submitters = [int(x) for x in args.submitters.split(",") if x]

@@ -4,8 +4,8 @@ A check a person can look at: the source body posed at one frame, contact vertic
 (the 3 closest pairs of each contact), hand groups tinted; with ``--target`` a second row shows the copy
 baseline on that body with penetrating vertices coloured by depth.
 
-    python benchmarks/render_contacts.py ../shared/data/motions/cmu/002_08.bvh -o contacts.png
-    python benchmarks/render_contacts.py CLIP --frame 120 --target ../shared/data/characters/mh_male_bulky.glb
+    python benchmarks/diag/render_contacts.py ../shared/data/motions/cmu/002_08.bvh -o contacts.png
+    python benchmarks/diag/render_contacts.py CLIP --frame 120 --target ../shared/data/characters/mh_male_bulky.glb
 
 Needs matplotlib (``pip install matplotlib``).
 """

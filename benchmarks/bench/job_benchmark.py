@@ -4,7 +4,7 @@ Defaults: a 300-frame piece (at 30 fps) of CMU 02_08 on the bulky sample body (1
 ``--runs`` times (the first one builds the per-body cache, the others find it warm); the last run's stage times
 are reported in ms per frame, for the whole chain and for the copy alone (every refinement stage off).
 
-    python benchmarks/job_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json] [--profile]
+    python benchmarks/bench/job_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json] [--profile]
 
 ``--profile`` also runs one default-chain job (body cache warm) under pyinstrument and writes its call tree
 beside the JSON (``<output>_profile.txt``): where the time goes, function by function.
@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
 SAMPLES = REPO / "retarget_core" / "data" / "samples"
 
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--runs", type=int, default=2, help="jobs per setting; the first one warms the body cache")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "job_benchmark.json")
+    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "job_benchmark.json")
     ap.add_argument("--profile", action="store_true", help="profile one default-chain job (pyinstrument)")
     args = ap.parse_args()
     print(f"job benchmark: {args.motion.name} on {Path(args.target).name}, {args.frames} frames at {args.fps:g} fps, "

@@ -6,9 +6,9 @@
 # ~/.cache/retarget/recurrent). OUT defaults to the shipped models folder; the full energy is the shipped
 # recurrent.pt.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${OUT:-retarget_core/data/models}
-LOGS=${LOGS:-benchmarks/results}
+LOGS=${LOGS:-benchmarks/train/results}
 for energy in full skeleton foot interpenetration; do
   name="recurrent-$energy"
   [ "$energy" = full ] && name=recurrent

@@ -13,7 +13,7 @@ hand contacts" when it has at least ``--min-contact-frames`` reference frames. A
 hand on reference frames (how much of "touching" is sunk into the body), and the time per frame of the distance
 queries and of the whole detection (single torch thread, wall and CPU).
 
-    flock /tmp/heavy.lock python benchmarks/contact_recall.py [--clips 002_07 007_01] [--max-frames 300]
+    flock /tmp/heavy.lock python benchmarks/eval/contact_recall.py [--clips 002_07 007_01] [--max-frames 300]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from retarget_core.loading import load_motion
 from retarget_core.resample import resample, select_frames
 from retarget_core.source_body import source_body_for
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
 REFERENCE_M = 0.015  # ACCEPTANCE.md: a source contact is a hand within 1.5 cm of a part
 FAR_M = 0.03  # the issue's "hands more than 3 cm from everything"
@@ -115,7 +115,7 @@ def write_markdown(result: dict[str, Any], path: Path) -> None:
     lines = [
         "# Hand self-contact recall on the shared clips",
         "",
-        f"Made by `benchmarks/contact_recall.py` ({result['when']}, {result['machine']}). Reference frames: a hand "
+        f"Made by `benchmarks/eval/contact_recall.py` ({result['when']}, {result['machine']}). Reference frames: a hand "
         "within 1.5 cm (at 1.80 m) of another part or inside it; far frames: both hands more than 3 cm from every "
         f"other part. Clips with at least {result['min_contact_frames']} reference frames count as clips with hand "
         "contacts.",
@@ -158,7 +158,7 @@ def main() -> None:
     ap.add_argument("--max-frames", type=int, default=300, help="frames per clip at 30 fps (0: all)")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--min-contact-frames", type=int, default=15, help="reference frames for a clip to count")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "contact_recall.json")
+    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "eval" / "results" / "contact_recall.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []

@@ -1,7 +1,7 @@
 """Time per frame of the network and of ESO on a 300-frame held-out clip on the 13k-vertex bulky body (one
-torch thread, per-body cache warm). Writes benchmarks/results/recurrent_speed.json. Run under the heavy lock:
+torch thread, per-body cache warm). Writes benchmarks/bench/results/recurrent_speed.json. Run under the heavy lock:
 
-    flock /tmp/heavy.lock python benchmarks/recurrent_speed.py
+    flock /tmp/heavy.lock python benchmarks/bench/recurrent_speed.py
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import torch
 from retarget_core.cases import context_from_prepared, prepared_case
 from retarget_core.refine import eso, recurrent
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
 
 
@@ -34,7 +34,7 @@ def main() -> None:
         rep = eso.run(ctx, net.motion).report
         out[f"eso_{iterations}_ms_per_frame"] = round(1000 * (time.perf_counter() - t) / ctx.num_frames, 3)
         out[f"eso_{iterations}_frames_optimised"] = rep.get("frames_optimised")
-    path = REPO / "benchmarks" / "results" / "recurrent_speed.json"
+    path = REPO / "benchmarks" / "bench" / "results" / "recurrent_speed.json"
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps(out))
 

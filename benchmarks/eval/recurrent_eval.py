@@ -1,9 +1,9 @@
 """Copy vs network vs network + ESO on held-out clips x bodies (clips: retarget_core.model.data.HELD_OUT_CLIPS;
 bodies: shared mh_* characters, which no training body is). Prints a table and writes
-benchmarks/results/recurrent_eval.json. Run under the heavy lock:
+benchmarks/eval/results/recurrent_eval.json. Run under the heavy lock:
 
-    flock /tmp/heavy.lock python benchmarks/recurrent_eval.py [--frames 300] [--bodies mh_male_bulky ...]
-        [--weights other.pt --out benchmarks/results/recurrent_eval_other.json]
+    flock /tmp/heavy.lock python benchmarks/eval/recurrent_eval.py [--frames 300] [--bodies mh_male_bulky ...]
+        [--weights other.pt --out benchmarks/eval/results/recurrent_eval_other.json]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from retarget_core.model import inference
 from retarget_core.model.data import HELD_OUT_CLIPS
 from retarget_core.refine import eso, recurrent
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FIGURES = (
     ("pen_%v", lambda s: s.penetrating_vertices_percent),
     ("pen_frames_%", lambda s: s.penetrating_frames_percent),
@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--clips", nargs="*", default=list(HELD_OUT_CLIPS))
     ap.add_argument("--bodies", nargs="*", default=["mh_male_bulky", "mh_female_average"])
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "recurrent_eval.json")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "eval" / "results" / "recurrent_eval.json")
     ap.add_argument("--weights", type=Path, default=None, help="weights to evaluate (default: the shipped ones)")
     args = ap.parse_args()
     if args.weights is not None:

@@ -3,9 +3,9 @@
 Real parts: a private redis-server, a SQLite database, one ``python -m worker --queues cpu`` process with the
 default heartbeat settings, and a real job (a sample clip on a sample body). The job is allowed many attempts;
 each round waits until an attempt runs, kills that attempt's pool process, and times until the row is queued
-(or running) again as the next attempt. Writes benchmarks/results/requeue_benchmark.json.
+(or running) again as the next attempt. Writes benchmarks/bench/results/requeue_benchmark.json.
 
-    flock /tmp/heavy.lock .venv/bin/python benchmarks/requeue_benchmark.py --kills 20
+    flock /tmp/heavy.lock .venv/bin/python benchmarks/bench/requeue_benchmark.py --kills 20
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from sqlalchemy import select  # noqa: E402
@@ -40,7 +40,7 @@ from api.settings import Settings  # noqa: E402
 from api.storage import Storage  # noqa: E402
 
 SAMPLES = REPO / "retarget_core" / "data" / "samples"
-RESULT = REPO / "benchmarks" / "results" / "requeue_benchmark.json"
+RESULT = REPO / "benchmarks" / "bench" / "results" / "requeue_benchmark.json"
 
 
 def free_port() -> int:
@@ -188,7 +188,7 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
     delays = [r["queued_s"] for r in rounds if r["queued_s"] is not None]
     return {
         "what": "seconds from SIGKILL of a job's pool process to its row being queued again (next attempt)",
-        "command": "flock /tmp/heavy.lock .venv/bin/python benchmarks/requeue_benchmark.py --kills "
+        "command": "flock /tmp/heavy.lock .venv/bin/python benchmarks/bench/requeue_benchmark.py --kills "
                    f"{kills}",
         "date": datetime.now(UTC).strftime("%Y-%m-%d"),
         "heartbeat_timeout_seconds": settings.heartbeat_timeout_seconds,

@@ -1,9 +1,9 @@
 """Collision stage benchmark: ms per frame of the stage (wall and process CPU time: the CPU figure is the one to read on a shared machine) on 300-frame clips (30 fps) x heavy bodies, and its effect
 measured by :mod:`retarget_core.metrics` (penetrating vertices %, frames whose deepest vertex is > 1 cm, contact
 distance, jerk), before (plain rotation copy) and after. One torch thread. Writes
-benchmarks/results/collisions_benchmark.json.
+benchmarks/bench/results/collisions_benchmark.json.
 
-    flock /tmp/heavy.lock env PYTHONPATH=$PWD .venv/bin/python benchmarks/collisions_benchmark.py
+    flock /tmp/heavy.lock env PYTHONPATH=$PWD .venv/bin/python benchmarks/bench/collisions_benchmark.py
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from retarget_core.metrics.compute import ClipMeasures, compute_metrics
 from retarget_core.motion import Motion
 from retarget_core.refine.collisions import resolve
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT.parent / "shared" / "data"
 DEFAULT_CLIPS = ("002_05", "002_08", "001_01", "005_12", "006_12")
 DEFAULT_BODIES = ("mh_male_bulky", "mh_male_muscular", "mh_female_average")
@@ -160,7 +160,7 @@ def main() -> None:
     ap.add_argument("--pairs", nargs="*", default=None, help="clip:body pairs, run in this order (instead of clips x bodies)")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/collisions_benchmark.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/bench/results/collisions_benchmark.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []

@@ -6,7 +6,7 @@ our reader's re-grounded view). Per clip x body: foot lock ms/frame (median of 3
 collision re-check's ms/frame, foot accuracy, skate, float, ground penetration, jerk ratio and end-effector
 error before and after, and the stage's own report.
 
-    flock /tmp/heavy.lock python benchmarks/foot_lock_benchmark.py [--clips 007_05:0,001_01:30] \\
+    flock /tmp/heavy.lock python benchmarks/bench/foot_lock_benchmark.py [--clips 007_05:0,001_01:30] \\
         [--bodies mh_male_bulky,mh_female_skinny,mh_neutral_tall] [--frames 300] [-o out.json]
 
 A clip is ``NAME:FPS`` (0 keeps the file's rate; CMU walks here are short: 007_05 has 259 frames at 60 fps).
@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "core"))
 
@@ -117,7 +117,7 @@ def main() -> None:
     parser.add_argument("--clips", default="007_05:0,001_01:30")
     parser.add_argument("--bodies", default="mh_male_bulky,mh_female_skinny,mh_neutral_tall")
     parser.add_argument("--frames", type=int, default=300)
-    parser.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "foot_lock_benchmark.json")
+    parser.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "foot_lock_benchmark.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
     tmp = Path("/tmp") / "foot_lock_benchmark"

@@ -3,13 +3,13 @@
 1. The character is written to a scratch folder (``retarget_core.bodies.large_character``).
 2. A ``--frames`` (300) default-chain job of ``--motion`` at 30 fps, run ``--runs`` times (the first builds the
    per-body cache): stage seconds of the last run, in ms per frame, beside the bulky sample's default chain
-   (read from ``--bulky`` (benchmarks/results/job_benchmark.json), or run here with ``--run-bulky``).
+   (read from ``--bulky`` (benchmarks/bench/results/job_benchmark.json), or run here with ``--run-bulky``).
 3. A ``--memory-frames`` (1000) job of ``--memory-motion`` at the clip's own rate in a fresh process: its peak
    resident memory (``VmHWM`` of /proc/self/status: ``ru_maxrss`` would keep the parent's peak across exec).
    ``--runs 0``: only this job, written into the existing JSON's ``memory``.
 4. ``--profile``: one warm job under pyinstrument, its call tree next to the JSON.
 
-    flock /tmp/heavy.lock python benchmarks/large_character_benchmark.py [-o out.json]
+    flock /tmp/heavy.lock python benchmarks/bench/large_character_benchmark.py [-o out.json]
 
 Targets (issue 20): the whole job at most 3 x the bulky sample's time per frame; peak memory at most 1.5 GB for
 1,000 frames.
@@ -28,8 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "benchmarks"))
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "benchmarks" / "bench"))
 from job_benchmark import per_frame_ms, run_once  # noqa: E402
 
 DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -75,7 +75,7 @@ def bulky_reference(args: argparse.Namespace) -> dict[str, Any]:
                 for _ in range(2)]  # fmt: skip
         return {"source": "run here", "ms_per_frame": per_frame_ms(runs[-1])}
     if not args.bulky.is_file():
-        raise SystemExit(f"{args.bulky} is missing: run benchmarks/job_benchmark.py or pass --run-bulky")
+        raise SystemExit(f"{args.bulky} is missing: run benchmarks/bench/job_benchmark.py or pass --run-bulky")
     data = json.loads(args.bulky.read_text())
     return {"source": str(args.bulky.relative_to(REPO)), "when": data.get("when"),
             "ms_per_frame": data["default chain"]["ms_per_frame"]}  # fmt: skip
@@ -91,10 +91,10 @@ def main() -> None:
     ap.add_argument("--memory-frames", type=int, default=1000, help="0: skip the memory job")
     ap.add_argument("--memory-chain", choices=("default", "copy"), default="default",
                     help="the memory job's stages (copy: every refinement stage off)")
-    ap.add_argument("--bulky", type=Path, default=REPO / "benchmarks" / "results" / "job_benchmark.json")
+    ap.add_argument("--bulky", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "job_benchmark.json")
     ap.add_argument("--run-bulky", action="store_true", help="time the bulky sample here instead of reading it")
     ap.add_argument("--profile", action="store_true", help="profile one warm job (pyinstrument)")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "results" / "large_character_benchmark.json")
+    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "large_character_benchmark.json")
     args = ap.parse_args()
     from retarget_core.bodies.large_character import write_large_character
     from retarget_core.loading import load_character

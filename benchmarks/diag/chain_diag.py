@@ -2,7 +2,7 @@
 acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them) printed after the copy and after every
 stage that ran, so a regression can be pinned on the stage that made it.
 
-    PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/chain_diag.py \\
+    PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/chain_diag.py \\
         ../shared/data/motions/cmu/002_06.bvh ~/.cache/retarget/heldout/heldout_tall-cc6a29d268ed.glb
 
 The clip is sent as a GLB on the average body and resampled to 30 fps, as the held-out evaluation does (the
@@ -18,7 +18,9 @@ import time
 from pathlib import Path
 
 import torch
-from heldout_case import case_parser, prepare_case
+import sys  # noqa: E402
+sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
+from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.metrics.acceptance import figures_from_measures, measure_acceptance
 from retarget_core.motion import Motion
