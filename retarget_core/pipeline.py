@@ -41,7 +41,7 @@ from retarget_core.stages import PREPARE_ORDER, progress_weight
 
 PIPELINE_THREADS = 1
 """Torch intra-op threads while a job runs: the stages are many small tensor operations, for which OpenMP's
-parallel regions cost more than they save on a small shared CPU (benchmarks/results/metrics_benchmark*.json)."""
+parallel regions cost more than they save on a small shared CPU (benchmarks/bench/results/metrics_benchmark*.json)."""
 
 
 @dataclass

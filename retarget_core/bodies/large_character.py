@@ -9,7 +9,7 @@ Made from a built-in MakeHuman body (:func:`retarget_core.bodies.presets.load_pr
 - ``Teeth``: a capsule inside the mouth.
 
 Every mesh but the body is skinned by copying the nearest body vertex's weights. Used by the large-character
-test and by ``benchmarks/large_character_benchmark.py``; nothing is stored in the repository.
+test and by ``benchmarks/bench/large_character_benchmark.py``; nothing is stored in the repository.
 """
 
 from __future__ import annotations

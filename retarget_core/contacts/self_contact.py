@@ -17,7 +17,7 @@ A (hand, part) pair is in contact on a frame when
 3. gap filling: it lies in a gap of at most ``fill_s`` (0.2 s) between two contact runs of the same pair and
    stays within ``far_m`` (3 cm, the acceptance test's "away from everything").
 
-Thresholds were chosen on the shared clips (benchmarks/contact_recall.py, docs/contacts.md): 1.5 cm is the
+Thresholds were chosen on the shared clips (benchmarks/eval/contact_recall.py, docs/contacts.md): 1.5 cm is the
 acceptance test's own source-contact distance; the 2.5 cm release equals the distance at which the acceptance
 test calls a contact kept, so a contact never ends while the hand is still "touching" by that measure; nothing
 is ever detected beyond 3 cm. The paper's velocity cosine is still computed (``cosine``) and the intersection

@@ -59,7 +59,7 @@ class SDFParams:
     # Joint folds: a vertex this close along the rest mesh to a segment is in the fold between them (armpit,
     # crotch, the neck's crease); LBS sinks such skin into the neighbour at every bend, which no one calls a
     # penetration. 3 cm is the band the acceptance measure leaves out (../shared/ACCEPTANCE.md); the ramp then
-    # rises from 0 here to 1 at geodesic_ramp_m. Renders: benchmarks/results/pen_*.png.
+    # rises from 0 here to 1 at geodesic_ramp_m. Renders: benchmarks/diag/results/pen_*.png.
     geodesic_dead_zone_m: float = 0.03
     sample_spacing_m: float = 0.02
     cluster_m: float = 0.04

@@ -31,7 +31,7 @@ quantities are per 1/30 s. Parts, closed volumes, hands, feet and the seam band 
 Speed: the meshes are posed by linear blend skinning in one batch; per frame and part one libigl call answers
 every candidate vertex (vertices of the tested parts inside the part's posed bounding box, and hand vertices
 near it). About 30-60 ms per frame on the 13k-vertex bodies on one core (see
-``benchmarks/acceptance_copy.py``).
+``benchmarks/eval/acceptance_copy.py``).
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ class SourceThresholds:
     # A foot flat on the floor (toe and ankle within foot_down_m of their standing heights) sliding more than
     # 1 cm a frame on more than 20 % of its floor frames is a skating capture; a clean walk's heel strikes and
     # toe-offs slide on fewer (median 3 % on the shared clips, 4 of 58 over 20 %; 1 mm / 0.3 degree of noise:
-    # 44 % or more; benchmarks/results/source_calibration.json).
+    # 44 % or more; benchmarks/diag/results/source_calibration.json).
     foot_down_m: float = 0.03
     slide_m: float = 0.01
     slide_frames_percent: float = 20.0
@@ -55,7 +55,7 @@ class SourceThresholds:
     float_m: float = 0.02
     # Jitter: mean joint jerk (third difference of positions at 30 fps) above 1.5 cm/frame^3 AND out of
     # proportion to the motion, jerk / acceleration above 1.5 (white noise gives sqrt(20 / 6) = 1.83, smooth
-    # motion less). On the 58 shared clips (benchmarks/results/source_calibration_jitter.json) clean captures
+    # motion less). On the 58 shared clips (benchmarks/diag/results/source_calibration_jitter.json) clean captures
     # give 0.4 to 4.9 cm/frame^3 (the fast ones, ratio about 1.0) and ratios 0.94 to 1.62 (slow ones, small
     # jerk): 1 clip flagged; with 1 mm / 0.3 degree noise added, 2.5 to 6.8 with ratios 1.20 to 1.82: 44 of 58
     # flagged (3 mm / 1 degree: 54). Either test alone overlaps.
