@@ -286,6 +286,21 @@ def _sample_grid(sdf: PartSDF, seg: int, x: Tensor, channel: int | None = None) 
     return p * seg_d + (1.0 - p) * char_d + outside
 
 
+@dataclass
+class _PairCull:
+    """What :func:`sample_pairs` culls with, per frame: ``overlap (F, Si, Sj)`` part box against segment grid box,
+    cluster centres ``centre (F * C, 3)`` and radii ``radius (F * C,)`` (flat), the grids' rest boxes ``lo, hi
+    (S, 3)``, and ``slot (V,)`` mesh vertex -> row of ``posed`` when a vertex subset is given."""
+
+    clusters: VertexClusters
+    overlap: Tensor
+    centre: Tensor
+    radius: Tensor
+    lo: Tensor
+    hi: Tensor
+    slot: Tensor | None
+
+
 def sample_pairs(
     sdf: PartSDF,
     posed: Tensor,
@@ -307,72 +322,21 @@ def sample_pairs(
     against j's grid box in j's frame; then the sphere against j's segment distance at its centre.
     """
     allowed = sdf.allowed if allowed is None else allowed
-    f_n, n_pts = posed.shape[:2]
-    vp = sdf.parts.vertex_part
-    v_n = vp.shape[0]
-    s_n = sdf.parts.num_parts
     if sdf.clusters is None and vertices is not None:
         raise ValueError("sample_pairs: a vertex subset needs the SDF's precomputed clusters")
-    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), vp, 0.04)
-    rot = seg_mats[..., :3]  # (F, S, 3, 3)
-    trans = seg_mats[..., 3]  # (F, S, 3)
-    c_n = clusters.part.shape[0]
-    slot = None  # mesh vertex -> row of ``posed`` when a subset is given
+    cull = _pair_cull(sdf, posed.detach(), seg_mats.detach(), allowed, vertices)
     reach = sdf.blend if inside_only else sdf.margin
-    with torch.no_grad():
-        p = posed.detach()
-        r_all, t_all = rot.detach(), trans.detach()
-        # Only the vertices of parts with an allowed pair are bounded and clustered (a leg-only check skips
-        # the rest of the body); the others' boxes stay empty and their clusters are never candidates.
-        if vertices is None:
-            active = allowed.any(dim=1).index_select(0, vp)
-            sub = None if bool(active.all()) else torch.nonzero(active).flatten()
-            box_points = p if sub is None else p.index_select(1, sub)
-        else:
-            sub, box_points = vertices, p
-            slot = torch.full((v_n,), -1, dtype=torch.long).index_copy_(0, vertices, torch.arange(n_pts))
-        vp_a = vp if sub is None else vp.index_select(0, sub)
-        ov = clusters.of_vertex if sub is None else clusters.of_vertex.index_select(0, sub)
-        idx = vp_a.view(1, -1, 1).expand(f_n, -1, 3)
-        p_lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amin")
-        p_hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amax")
-        corners = sdf.grid_corners().to(p.dtype)  # (S, 8, 3)
-        posed_corners = torch.einsum("fsij,skj->fski", r_all, corners) + t_all[:, :, None, :]
-        g_lo, g_hi = posed_corners.min(dim=2).values, posed_corners.max(dim=2).values
-        overlap = ((p_lo[:, :, None] <= g_hi[:, None]) & (p_hi[:, :, None] >= g_lo[:, None])).all(-1)  # (F, Si, Sj)
-        has_grid = torch.tensor([g is not None for g in sdf.grids])
-        overlap &= allowed[None] & has_grid[None, None, :]
-        counts = torch.bincount(ov, minlength=c_n).clamp_min(1).to(p.dtype)
-        centre = torch.zeros(f_n, c_n, 3, dtype=p.dtype).index_add_(1, ov, box_points) / counts[None, :, None]
-        radius = clusters.radius.to(p.dtype)[None].expand(f_n, c_n)
-        lo = sdf.origin.to(p.dtype)
-        hi = lo + (sdf.size - 1).to(p.dtype) * sdf.voxel[:, None].to(p.dtype)
+    n_pts = posed.shape[1]
+    rot, trans = seg_mats[..., :3], seg_mats[..., 3]  # (F, S, 3, 3), (F, S, 3)
     frames, verts, segs, dists = [], [], [], []
     # Gathers use index_select on flattened tensors: advanced indexing is far slower on small CPUs.
     flat_posed = posed.reshape(-1, 3)
-    flat_centre, flat_radius = centre.reshape(-1, 3), radius.reshape(-1)
-    for j in torch.nonzero(overlap.any(dim=(0, 1))).flatten().tolist():
-        with torch.no_grad():
-            cand = overlap[:, :, j].contiguous().index_select(1, clusters.part)  # (F, C)
-            f_c, c_sel = torch.nonzero(cand, as_tuple=True)  # candidate (frame, cluster)
-            key = f_c * c_n + c_sel
-            r_j = r_all[:, j].contiguous().index_select(0, f_c)
-            t_j = t_all[:, j].contiguous().index_select(0, f_c)
-            centre_local = torch.einsum("nji,nj->ni", r_j, flat_centre.index_select(0, key) - t_j)
-            rad = flat_radius.index_select(0, key)
-            keep = (centre_local - centre_local.clamp(lo[j], hi[j])).norm(dim=-1) <= rad
-            # The segment channel is 1-Lipschitz: a cluster whose centre is farther than margin + radius from
-            # the segment has every vertex beyond the margin (where the blend is the segment channel alone).
-            f_c, c_sel, centre_local, rad = f_c[keep], c_sel[keep], centre_local[keep], rad[keep]
-            keep = _sample_grid(sdf, j, centre_local, channel=0) - rad <= reach
-            f_c, c_sel = f_c[keep], c_sel[keep]
-            if len(f_c) == 0:
-                continue
-            mem = clusters.members.index_select(0, c_sel)  # (N', K)
-            valid = mem >= 0
-            f_idx = f_c[:, None].expand_as(mem).masked_select(valid)
-            v_idx = mem.masked_select(valid)
-        rows = v_idx if slot is None else slot.index_select(0, v_idx)
+    for j in torch.nonzero(cull.overlap.any(dim=(0, 1))).flatten().tolist():
+        found = _segment_candidates(sdf, cull, rot.detach(), trans.detach(), j, reach)
+        if found is None:
+            continue
+        f_idx, v_idx = found
+        rows = v_idx if cull.slot is None else cull.slot.index_select(0, v_idx)
         x = flat_posed.index_select(0, f_idx * n_pts + rows)
         rot_j, trans_j = rot[:, j].contiguous(), trans[:, j].contiguous()
         local = torch.einsum("nji,nj->ni", rot_j.index_select(0, f_idx), x - trans_j.index_select(0, f_idx))
@@ -384,6 +348,71 @@ def sample_pairs(
         empty = torch.zeros(0, dtype=torch.long)
         return PairSamples(empty, empty, empty, posed.new_zeros(0))
     return body_samples(sdf, PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists)))
+
+
+@torch.no_grad()
+def _pair_cull(sdf: PartSDF, p: Tensor, seg_mats: Tensor, allowed: Tensor, vertices: Tensor | None) -> _PairCull:
+    """The per-frame bounds of :func:`sample_pairs` for posed points ``p (F, N, 3)``."""
+    f_n, n_pts = p.shape[:2]
+    vp = sdf.parts.vertex_part
+    s_n = sdf.parts.num_parts
+    clusters = sdf.clusters or vertex_clusters(p[0], vp, 0.04)
+    r_all, t_all = seg_mats[..., :3], seg_mats[..., 3]
+    c_n = clusters.part.shape[0]
+    slot = None
+    # Only the vertices of parts with an allowed pair are bounded and clustered (a leg-only check skips the rest
+    # of the body); the others' boxes stay empty and their clusters are never candidates.
+    if vertices is None:
+        active = allowed.any(dim=1).index_select(0, vp)
+        sub = None if bool(active.all()) else torch.nonzero(active).flatten()
+        box_points = p if sub is None else p.index_select(1, sub)
+    else:
+        sub, box_points = vertices, p
+        slot = torch.full((vp.shape[0],), -1, dtype=torch.long).index_copy_(0, vertices, torch.arange(n_pts))
+    vp_a = vp if sub is None else vp.index_select(0, sub)
+    ov = clusters.of_vertex if sub is None else clusters.of_vertex.index_select(0, sub)
+    idx = vp_a.view(1, -1, 1).expand(f_n, -1, 3)
+    p_lo = torch.full((f_n, s_n, 3), math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amin")
+    p_hi = torch.full((f_n, s_n, 3), -math.inf, dtype=p.dtype).scatter_reduce(1, idx, box_points, "amax")
+    corners = sdf.grid_corners().to(p.dtype)  # (S, 8, 3)
+    posed_corners = torch.einsum("fsij,skj->fski", r_all, corners) + t_all[:, :, None, :]
+    g_lo, g_hi = posed_corners.min(dim=2).values, posed_corners.max(dim=2).values
+    overlap = ((p_lo[:, :, None] <= g_hi[:, None]) & (p_hi[:, :, None] >= g_lo[:, None])).all(-1)  # (F, Si, Sj)
+    has_grid = torch.tensor([g is not None for g in sdf.grids])
+    overlap &= allowed[None] & has_grid[None, None, :]
+    counts = torch.bincount(ov, minlength=c_n).clamp_min(1).to(p.dtype)
+    centre = torch.zeros(f_n, c_n, 3, dtype=p.dtype).index_add_(1, ov, box_points) / counts[None, :, None]
+    radius = clusters.radius.to(p.dtype)[None].expand(f_n, c_n)
+    lo = sdf.origin.to(p.dtype)
+    hi = lo + (sdf.size - 1).to(p.dtype) * sdf.voxel[:, None].to(p.dtype)
+    return _PairCull(clusters, overlap, centre.reshape(-1, 3), radius.reshape(-1), lo, hi, slot)
+
+
+@torch.no_grad()
+def _segment_candidates(sdf: PartSDF, cull: _PairCull, r_all: Tensor, t_all: Tensor, j: int,
+                        reach: float) -> tuple[Tensor, Tensor] | None:  # fmt: skip
+    """(frame, mesh vertex) ``(N,)`` each of the clusters that may hold a vertex within ``reach`` of segment
+    ``j``; ``r_all, t_all`` ``(F, S, 3, 3)``, ``(F, S, 3)``. None when no cluster does."""
+    clusters = cull.clusters
+    c_n = clusters.part.shape[0]
+    cand = cull.overlap[:, :, j].contiguous().index_select(1, clusters.part)  # (F, C)
+    f_c, c_sel = torch.nonzero(cand, as_tuple=True)  # candidate (frame, cluster)
+    key = f_c * c_n + c_sel
+    r_j = r_all[:, j].contiguous().index_select(0, f_c)
+    t_j = t_all[:, j].contiguous().index_select(0, f_c)
+    centre_local = torch.einsum("nji,nj->ni", r_j, cull.centre.index_select(0, key) - t_j)
+    rad = cull.radius.index_select(0, key)
+    keep = (centre_local - centre_local.clamp(cull.lo[j], cull.hi[j])).norm(dim=-1) <= rad
+    # The segment channel is 1-Lipschitz: a cluster whose centre is farther than margin + radius from the
+    # segment has every vertex beyond the margin (where the blend is the segment channel alone).
+    f_c, c_sel, centre_local, rad = f_c[keep], c_sel[keep], centre_local[keep], rad[keep]
+    keep = _sample_grid(sdf, j, centre_local, channel=0) - rad <= reach
+    f_c, c_sel = f_c[keep], c_sel[keep]
+    if len(f_c) == 0:
+        return None
+    mem = clusters.members.index_select(0, c_sel)  # (N', K)
+    valid = mem >= 0
+    return f_c[:, None].expand_as(mem).masked_select(valid), mem.masked_select(valid)
 
 
 def body_samples(sdf: PartSDF, samples: PairSamples) -> PairSamples:
