@@ -20,8 +20,8 @@ Mapping (after the 22 canonical joints are mapped, so the hands, feet and limbs 
   unmapped joint on the chain between two mapped limb joints whose name scores the same limb role (MakeHuman
   ``lowerarm02.L``, Rigify ``DEF-forearm.L.001``). Slots 1..3 go from the limb joint toward its end.
 * **VRM**: when the file carries a VRM humanoid bone map (``VRM`` 0.x or ``VRMC_vrm`` 1.0), its finger bones win
-  (method ``"vrm"``, confidence 1); its body bones are compared with the canonical mapping and any disagreement
-  is a warning (the 22 joints keep the name-and-structure mapping).
+  (method ``"vrm"``, confidence 1) and the names and structure fill the finger slots it lacks (a map without
+  thumbs); its body bones are held by the canonical mapping itself (:func:`retarget_core.mapping.map_joints`).
 * **Overrides**: the same file as for the canonical joints: ``{"LeftHandIndex1": "my_index_a_l"}`` (null unmaps),
   and ``{"LeftForeArmTwist1.share": 0.6}`` sets a twist bone's share.
 
@@ -383,7 +383,8 @@ def split_override(override: dict[str, object] | None) -> tuple[dict[str, str | 
 
 
 def _apply_vrm(m: _ExtraMapper, vrm: dict[str, str]) -> None:
-    """The VRM humanoid bone map's fingers replace the name-and-structure ones of the same hand."""
+    """The VRM humanoid bone map's fingers replace the name-and-structure ones of the same slot or joint; the
+    names and structure keep the slots the map lacks."""
     for c, joint_name in vrm.items():
         if c in m.map.joints and m.sk.find(joint_name) not in (None, m.map.joints[c]):
             m.warn(f"{c}: the VRM humanoid map says {joint_name!r}, the names and structure gave "
@@ -394,13 +395,19 @@ def _apply_vrm(m: _ExtraMapper, vrm: dict[str, str]) -> None:
         if j is not None and extra in EXTRA_JOINTS:
             by_side.setdefault("Left" if extra.startswith("Left") else "Right", {})[extra] = j
     for side, bones in by_side.items():
+        kept = []
         for name in [n for n in m.found if n.startswith(f"{side}Hand")]:
             if name in bones and bones[name] != m.found[name].joint:
                 m.warn(f"{name}: the VRM humanoid map says {m.sk.names[bones[name]]!r}, the names said "
                        f"{m.sk.names[m.found[name].joint]!r} (the VRM map is used)")  # fmt: skip
-            del m.found[name]
+            if name in bones or m.found[name].joint in bones.values():
+                del m.found[name]
+            else:
+                kept.append(name)
         for name, j in bones.items():
             m.put(name, j, 1.0, "vrm")
+        if kept:  # a partial VRM map (no thumb, no distal joint): the names fill what it lacks
+            m.warn(f"the VRM humanoid map has no {', '.join(kept)}: taken from the names and structure")
 
 
 def _apply_override(m: _ExtraMapper, joints: dict[str, str | None]) -> None:

@@ -929,6 +929,12 @@ class _Mapper:
                 self.warn(problem + f"; {loser} kept with low confidence")
 
 
+def _vrm_body(skeleton: Skeleton, vrm: dict[str, str] | None, forced: dict[str, int | None]) -> dict[str, int | None]:
+    """Canonical joint -> joint index from the file's VRM humanoid bone map, for those the override leaves."""
+    index = {name: j for j, name in enumerate(skeleton.names)}
+    return {c: index[n] for c, n in (vrm or {}).items() if c in CANONICAL_JOINTS and c not in forced and n in index}
+
+
 def map_joints(
     skeleton: Skeleton, override: dict[str, str] | None = None, *, vrm: dict[str, str] | None = None
 ) -> JointMapping:
@@ -938,13 +944,18 @@ def map_joints(
     override: canonical or extra joint -> joint name (a None value leaves that joint unmapped); these win with
     method ``"override"`` and confidence 1; ``"<twist joint>.share"`` keys set twist shares. Raises MappingError
     when the override names an unknown joint key or a joint the skeleton does not have. Missing required joints
-    do not raise: see ``mapping.missing()`` and :func:`require_complete`. vrm: extra joint -> joint name from the
-    file's VRM humanoid bone map (:func:`retarget_core.io.vrm.humanoid_extras`).
+    do not raise: see ``mapping.missing()`` and :func:`require_complete`. vrm: canonical or extra joint -> joint
+    name from the file's VRM humanoid bone map (:mod:`retarget_core.io.vrm`); its canonical joints are held like
+    an override's (confidence 1, method ``"vrm"``), below the override's own.
     """
     from retarget_core.extras import map_extras
 
     forced = _resolve_override(skeleton, override)  # type: ignore[arg-type]
-    mapping = _Mapper(skeleton, forced).run()
+    from_vrm = _vrm_body(skeleton, vrm, forced)
+    mapping = _Mapper(skeleton, {**from_vrm, **forced}).run()
+    for c in from_vrm:  # the file's own bone map: held like an override, reported as such
+        if mapping.method.get(c) == "override":
+            mapping.method[c] = "vrm"
     map_extras(skeleton, mapping, override, vrm)  # type: ignore[arg-type]
     return mapping
 

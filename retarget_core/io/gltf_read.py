@@ -479,6 +479,114 @@ def _influences(
     return jj, ww
 
 
+@dataclass
+class _MeshNode:
+    """How one mesh node is bound: its mesh, its skin (None when rigid) or the joint it rides on rigidly."""
+
+    node: int
+    mesh_index: int
+    mesh: dict[str, Any]
+    skin: _Skin | None
+    rigid_joint: int | None
+
+
+def _mesh_node(
+    data: GltfData, nodes: _Nodes, n: int, skins: list[_Skin], node_to_joint: dict[int, int], notes: list[str]
+) -> _MeshNode | None:
+    """The binding of node ``n`` when it holds a mesh that can follow the skeleton; None otherwise (noted)."""
+    node = data.item("nodes", n, f"nodes[{n}]")
+    if "mesh" not in node:
+        return None
+    mesh = data.item("meshes", node["mesh"], f"nodes[{n}].mesh")
+    if not isinstance(mesh.get("primitives"), list):
+        raise data.fail(f"meshes[{node['mesh']}].primitives must be an array")
+    skin = skins[data.index(node["skin"], len(skins), f"nodes[{n}].skin")] if "skin" in node else None
+    rigid_joint = None
+    if skin is None:
+        rigid_joint = next((node_to_joint[a] for a in [n, *nodes.ancestors(n)] if a in node_to_joint), None)
+        if rigid_joint is None:
+            notes.append(f"mesh node {nodes.names[n] or n} is not skinned and not under a joint: skipped")
+            return None
+    return _MeshNode(n, node["mesh"], mesh, skin, rigid_joint)
+
+
+def _bound_vertices(
+    data: GltfData,
+    binding: _MeshNode,
+    pos: np.ndarray,
+    attrs: dict[str, Any],
+    where: str,
+    rest_world: dict[int, np.ndarray],
+    node_to_joint: dict[int, int],
+    notes: list[str],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rest vertices ``(V, 3)`` and their skeleton joints and weights ``(V, 4)`` of one primitive: skinned into
+    the rest pose, or placed by the mesh node's rest matrix and bound wholly to its rigid joint."""
+    count = pos.shape[0]
+    if binding.skin is not None:
+        skin = binding.skin
+        jj, ww = _influences(data, attrs, count, len(skin.joints), where, notes)
+        mats = np.stack([rest_world[j][0] for j in skin.joints]) @ skin.ibm
+        verts = _skin_rest(pos, jj, ww, mats)
+        skin_to_skel = np.array([node_to_joint[j] for j in skin.joints], dtype=np.int64)
+        jj, ww = limit_influences(skin_to_skel[jj], ww)
+        return verts, jj, ww
+    m = rest_world[binding.node][0]
+    verts = pos @ m[:3, :3].T + m[:3, 3]
+    jj = np.zeros((count, MAX_INFLUENCES), np.int64)
+    jj[:, 0] = binding.rigid_joint
+    ww = np.zeros((count, MAX_INFLUENCES), np.float32)
+    ww[:, 0] = 1.0
+    return verts, jj, ww
+
+
+def _add_mesh_node(
+    data: GltfData,
+    binding: _MeshNode,
+    rest_world: dict[int, np.ndarray],
+    node_to_joint: dict[int, int],
+    parts: _MeshParts,
+    notes: list[str],
+) -> None:
+    """Append every triangle primitive of one mesh node to ``parts``."""
+    for p, prim in enumerate(binding.mesh["primitives"]):
+        where = f"meshes[{binding.mesh_index}].primitives[{p}]"
+        got = _read_primitive(data, prim, where, parts, notes)
+        if got is None:
+            continue
+        pos, tri, attrs = got
+        verts, jj, ww = _bound_vertices(data, binding, pos, attrs, where, rest_world, node_to_joint, notes)
+        uv = None
+        if "TEXCOORD_0" in attrs:
+            uv = _attribute(data, attrs, "TEXCOORD_0", pos.shape[0], where, ("VEC2",)).astype(np.float32)
+            require_finite(uv, f"{where} TEXCOORD_0", data.label)
+        parts.vertices.append(verts)
+        parts.faces.append(tri + parts.num_vertices)
+        parts.joints.append(jj)
+        parts.weights.append(ww)
+        parts.uvs.append(uv)
+        parts.num_vertices += pos.shape[0]
+        parts.num_faces += len(tri)
+        if parts.material is None and isinstance(prim, dict) and "material" in prim:
+            parts.material = data.index(prim["material"], len(data.array("materials")), f"{where}.material")
+
+
+def _merged_uvs(parts: _MeshParts, notes: list[str]) -> torch.Tensor | None:
+    """UVs ``(V, 2)`` of all primitives (zeros for those without TEXCOORD_0), or None when none has them."""
+    if all(u is None for u in parts.uvs):
+        return None
+    if any(u is None for u in parts.uvs):
+        notes.append("some primitives have no TEXCOORD_0: their UVs were set to 0")
+    return torch.from_numpy(
+        np.concatenate(
+            [
+                u if u is not None else np.zeros((v.shape[0], 2), np.float32)
+                for u, v in zip(parts.uvs, parts.vertices, strict=True)
+            ]
+        )
+    )
+
+
 def _build_character(
     data: GltfData,
     nodes: _Nodes,
@@ -488,6 +596,8 @@ def _build_character(
     name: str,
     notes: list[str],
 ) -> Character | None:
+    """Every mesh node that follows the skeleton (skinned, or rigidly under a joint) merged into one Character;
+    None when no mesh is skinned."""
     settings = get_settings()
     node_to_joint = {node: j for j, node in enumerate(skeleton_nodes)}
     rest_world = _world(
@@ -497,76 +607,21 @@ def _build_character(
     spans: list[MeshSpan] = []
     any_skinned = False
     for n in nodes.order:
-        node = data.item("nodes", n, f"nodes[{n}]")
-        if "mesh" not in node:
+        binding = _mesh_node(data, nodes, n, skins, node_to_joint, notes)
+        if binding is None:
             continue
-        mesh = data.item("meshes", node["mesh"], f"nodes[{n}].mesh")
-        prims = mesh.get("primitives")
-        if not isinstance(prims, list):
-            raise data.fail(f"meshes[{node['mesh']}].primitives must be an array")
-        skin = skins[data.index(node["skin"], len(skins), f"nodes[{n}].skin")] if "skin" in node else None
-        rigid_joint = None
-        if skin is None:
-            anc = [n, *nodes.ancestors(n)]
-            rigid_joint = next((node_to_joint[a] for a in anc if a in node_to_joint), None)
-            if rigid_joint is None:
-                notes.append(f"mesh node {nodes.names[n] or n} is not skinned and not under a joint: skipped")
-                continue
         span_start = (parts.num_vertices, parts.num_faces)
-        for p, prim in enumerate(prims):
-            where = f"meshes[{node['mesh']}].primitives[{p}]"
-            got = _read_primitive(data, prim, where, parts, notes)
-            if got is None:
-                continue
-            pos, tri, attrs = got
-            count = pos.shape[0]
-            if skin is not None:
-                any_skinned = True
-                jj, ww = _influences(data, attrs, count, len(skin.joints), where, notes)
-                mats = np.stack([rest_world[j][0] for j in skin.joints]) @ skin.ibm
-                verts = _skin_rest(pos, jj, ww, mats)
-                skin_to_skel = np.array([node_to_joint[j] for j in skin.joints], dtype=np.int64)
-                jj, ww = limit_influences(skin_to_skel[jj], ww)
-            else:
-                m = rest_world[n][0]
-                verts = pos @ m[:3, :3].T + m[:3, 3]
-                jj = np.zeros((count, MAX_INFLUENCES), np.int64)
-                jj[:, 0] = rigid_joint
-                ww = np.zeros((count, MAX_INFLUENCES), np.float32)
-                ww[:, 0] = 1.0
-            uv = None
-            if "TEXCOORD_0" in attrs:
-                uv = _attribute(data, attrs, "TEXCOORD_0", count, where, ("VEC2",)).astype(np.float32)
-                require_finite(uv, f"{where} TEXCOORD_0", data.label)
-            parts.vertices.append(verts)
-            parts.faces.append(tri + parts.num_vertices)
-            parts.joints.append(jj)
-            parts.weights.append(ww)
-            parts.uvs.append(uv)
-            parts.num_vertices += count
-            parts.num_faces += len(tri)
-            if parts.material is None and isinstance(prim, dict) and "material" in prim:
-                parts.material = data.index(prim["material"], len(data.array("materials")), f"{where}.material")
+        _add_mesh_node(data, binding, rest_world, node_to_joint, parts, notes)
         if parts.num_vertices > span_start[0]:  # one span per mesh node, for the mesh roles (mesh_roles.py)
-            label = str(mesh.get("name") or nodes.names[n] or f"mesh {node['mesh']}")
+            any_skinned = any_skinned or binding.skin is not None
+            label = str(binding.mesh.get("name") or nodes.names[n] or f"mesh {binding.mesh_index}")
             spans.append(MeshSpan(label, span_start[0], parts.num_vertices - span_start[0], span_start[1],
                                   parts.num_faces - span_start[1]))  # fmt: skip
     if not any_skinned:
         if parts.vertices:
             notes.append("no skinned mesh: rigid meshes under joints are not a character on their own")
         return None
-    uvs = None
-    if any(u is not None for u in parts.uvs):
-        if any(u is None for u in parts.uvs):
-            notes.append("some primitives have no TEXCOORD_0: their UVs were set to 0")
-        uvs = torch.from_numpy(
-            np.concatenate(
-                [
-                    u if u is not None else np.zeros((v.shape[0], 2), np.float32)
-                    for u, v in zip(parts.uvs, parts.vertices, strict=True)
-                ]
-            )
-        )
+    uvs = _merged_uvs(parts, notes)
     if parts.num_vertices > settings.max_vertices:
         raise LimitExceededError(
             f"{parts.num_vertices} vertices, over the limit of {settings.max_vertices}", data.label
