@@ -1,8 +1,9 @@
 """Encoder-space optimisation (paper 1, section 3.3 and appendix B), batched over the clip.
 
 The network's encoder states ``h_enc (1, F, H)`` are optimised (as offsets on knots every ``knot_frames``
-frames, linearly interpolated: smooth by construction) against the energy with relaxed weights, only on the frames whose constraints are not met (and a few frames around them, faded
-in and out, so the decoder's recurrence carries the change smoothly):
+frames, linearly interpolated: smooth by construction) against the energy with relaxed weights, only on the
+frames whose constraints are not met (and a few frames around them, faded in and out, so the decoder's
+recurrence carries the change smoothly):
 
 - a frame is flagged when one of its contact constraints is farther than ``met_m`` but within the 15 cm gate
   (farther contacts are left alone: the network's output says the shape does not let the hand get there), or
@@ -186,21 +187,37 @@ class ESOResult:
     report: dict[str, Any] = field(default_factory=dict)
 
 
-def optimise(
+@dataclass
+class _Start:
+    """The network's motion and what it leaves unmet. rot ``(F, J, 4)``, trans and gpos ``(F, J, 3)``;
+    posed sentinels ``(F, V', 3)`` and their segment transforms ``(F, S, 3, 4)``; e_int ``(F,)`` their
+    interpenetration energy; pen_flag ``(F,)`` frames deeper than ``penetration_m``; d0 ``(M,)`` contact
+    distances (m), gated ``(M,)`` the ones optimised, and their frame, i, j ``(C,)``."""
+
+    rot: Tensor
+    trans: Tensor
+    gpos: Tensor
+    sent: Sentinels
+    posed: Tensor
+    mats: Tensor
+    e_int: Tensor
+    pen_flag: Tensor
+    d0: Tensor
+    gated: Tensor
+    c_frame: Tensor
+    c_i: Tensor
+    c_j: Tensor
+
+
+def _start(
     model: RecurrentRetargeter, kit: en.BodyKit, inputs: NetworkInputs, states: Tensor, embedding: Tensor,
-    constraints: ContactConstraints, feet: Tensor, params: ESOParams | None = None,
-) -> ESOResult:  # fmt: skip
-    """ESO of one clip. ``states (1, F, H)``, ``embedding (1, E)`` from the network; ``feet (F, 4)`` planted
-    labels. Returns the refined local rotations ``(F, J, 4)`` and translations ``(F, J, 3)``."""
-    p = params or ESOParams()
-    start = time.perf_counter()
-    rig = kit.rig
-    parents = rig.skeleton.parents
+    constraints: ContactConstraints, p: ESOParams,
+) -> _Start:  # fmt: skip
+    """Decode the network's motion ``states (1, F, H)`` and find its penetrating frames and gated contacts."""
     s = REFERENCE_HEIGHT_M / kit.height
     with torch.no_grad():
         rot0, trans0 = decode_motion(model, inputs, states, embedding)
-        grot0, gpos0 = forward_kinematics(parents, rot0, trans0)
-    f_n = rot0.shape[0]
+        grot0, gpos0 = forward_kinematics(kit.rig.skeleton.parents, rot0, trans0)
     sent = sentinels(kit, p.sentinel_cluster_m)
     with torch.no_grad():
         posed0, mats0 = _skin_sentinels(kit, sent, grot0, gpos0)
@@ -212,31 +229,14 @@ def optimise(
         else:
             d0 = torch.zeros(0)
             gated = torch.zeros(0, dtype=torch.bool)
-    c_frame, c_i, c_j = constraints.frame[gated], constraints.i[gated], constraints.j[gated]
-    flags = pen_flag.clone()
-    flags[c_frame] = True
-    report: dict[str, Any] = {
-        "frames_flagged_penetration": int(pen_flag.sum()), "contacts_gated": int(gated.sum()),
-        "contacts_beyond_gate": int((d0 > p.gate_m).sum()), "contacts_already_met": int((d0 <= p.met_m).sum()),
-    }  # fmt: skip
-    if not bool(flags.any()):
-        report.update(frames_optimised=0, kept=False, ms_per_frame=round(1000 * (time.perf_counter() - start) / max(f_n, 1), 3))
-        return ESOResult(rot0, trans0, report)
-    opt_frames = torch.nonzero(flags).flatten()
-    weight = _fade(flags, p.fade_frames)
-    active = torch.nonzero(weight > 0).flatten()
-    w_act = weight[active]
-    last = int(active[-1]) + 1
-    position = torch.full((f_n,), -1, dtype=torch.long)
-    position[active] = torch.arange(active.numel())
-    pen_a, c_a = position[opt_frames], position[c_frame]
-    hold_joint = torch.tensor([kit.parts.joints[int(v)] for v in kit.parts.vertex_part[c_j]], dtype=torch.long)
-    rot0_a, trans0_a, gpos0_a = rot0[active], trans0[active], gpos0[active]
-    with torch.no_grad():
-        cache = cache_pairs(sent.sdf, posed0[opt_frames], mats0[opt_frames], p.pair_keep_m * kit.height / REFERENCE_HEIGHT_M)
-    # State offsets on knots every knot_frames frames, linearly interpolated: smooth by construction (per-frame
-    # offsets made the result jitter: jerk ratio 2.4 on a held-out clip in our first run).
-    knots = torch.arange(0, last + p.knot_frames, p.knot_frames).clamp(max=max(last - 1, 0)).unique()
+    return _Start(rot0, trans0, gpos0, sent, posed0, mats0, e_int0, pen_flag, d0, gated,
+                  constraints.frame[gated], constraints.i[gated], constraints.j[gated])  # fmt: skip
+
+
+def _knot_weights(last: int, knot_frames: int) -> Tensor:
+    """Linear interpolation ``(last, K)`` from knots every ``knot_frames`` frames to frames ``0 .. last - 1``:
+    state offsets live on the knots so the result is smooth by construction (per-frame offsets jitter)."""
+    knots = torch.arange(0, last + knot_frames, knot_frames).clamp(max=max(last - 1, 0)).unique()
     t = torch.arange(last, dtype=torch.float32)
     seg = torch.searchsorted(knots.float(), t, right=True).clamp(1, max(len(knots) - 1, 1)) - 1
     k0, k1 = knots[seg].float(), knots[(seg + 1).clamp(max=len(knots) - 1)].float()
@@ -244,73 +244,211 @@ def optimise(
     interp = torch.zeros(last, len(knots))
     interp[torch.arange(last), seg] = 1 - frac
     interp[torch.arange(last), (seg + 1).clamp(max=len(knots) - 1)] += frac
-    dh = torch.zeros(1, len(knots), states.shape[-1], requires_grad=True)
-    opt = torch.optim.Adam([dh], lr=p.learning_rate, betas=p.adam_betas)
-    planted = feet[active].float()  # (A, 4) planted foot joints are held where the network put them
+    return interp
+
+
+@dataclass
+class _Problem:
+    """What the solve reads. flags ``(F,)`` frames flagged, opt_frames ``(P,)`` their indices; weight ``(F,)``
+    the fade; active ``(A,)`` frames with a nonzero weight, w_act ``(A,)`` theirs; last: one past the last
+    active frame; pen_a ``(P,)`` and c_a ``(C,)`` rows of the flagged frames and gated contacts among the
+    active ones; hold_joint ``(C,)`` the joint each touched vertex follows; interp ``(last, K)`` knots to
+    frames; planted ``(A, 4)`` foot labels, foot_cols and foot_idx the feet the rig has."""
+
+    model: RecurrentRetargeter
+    kit: en.BodyKit
+    start: _Start
+    states: Tensor
+    embedding: Tensor
+    dec_inputs: NetworkInputs
+    flags: Tensor
+    opt_frames: Tensor
+    weight: Tensor
+    active: Tensor
+    w_act: Tensor
+    last: int
+    pen_a: Tensor
+    c_a: Tensor
+    hold_joint: Tensor
+    cache: PairCache
+    interp: Tensor
+    planted: Tensor
+    foot_cols: list[int]
+    foot_idx: Tensor
+
+
+def _problem(
+    model: RecurrentRetargeter, kit: en.BodyKit, inputs: NetworkInputs, states: Tensor, embedding: Tensor,
+    st: _Start, flags: Tensor, feet: Tensor, p: ESOParams,
+) -> _Problem:  # fmt: skip
+    """The active window around the ``flags (F,)`` frames, the cached sentinel pairs and the held joints."""
+    f_n = st.rot.shape[0]
+    opt_frames = torch.nonzero(flags).flatten()
+    weight = _fade(flags, p.fade_frames)
+    active = torch.nonzero(weight > 0).flatten()
+    last = int(active[-1]) + 1
+    position = torch.full((f_n,), -1, dtype=torch.long)
+    position[active] = torch.arange(active.numel())
+    hold_joint = torch.tensor([kit.parts.joints[int(v)] for v in kit.parts.vertex_part[st.c_j]], dtype=torch.long)
+    keep_m = p.pair_keep_m * kit.height / REFERENCE_HEIGHT_M
+    with torch.no_grad():
+        cache = cache_pairs(st.sent.sdf, st.posed[opt_frames], st.mats[opt_frames], keep_m)
     foot_cols = [c for c, j in enumerate(kit.foot_joints) if j >= 0]
     foot_idx = torch.tensor([kit.foot_joints[c] for c in foot_cols], dtype=torch.long)
-    dec_inputs = NetworkInputs(rig, inputs.features[:, :last], inputs.heading[:, :last], inputs.copy_rot[:, :last],
+    dec_inputs = NetworkInputs(kit.rig, inputs.features[:, :last], inputs.heading[:, :last], inputs.copy_rot[:, :last],
                                inputs.copy_trans[:, :last], inputs.code)  # fmt: skip
+    return _Problem(
+        model, kit, st, states, embedding, dec_inputs, flags, opt_frames, weight, active, weight[active], last,
+        position[opt_frames], position[st.c_frame], hold_joint, cache, _knot_weights(last, p.knot_frames),
+        feet[active].float(), foot_cols, foot_idx,
+    )  # fmt: skip
 
-    def evaluate() -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The active frames ``(A, ...)``: the optimised output blended into the network's by the fade weight
-        (frames past the window keep the network's output, whatever the recurrence would carry there)."""
-        offset = torch.einsum("tk,bkh->bth", interp, dh)
-        rot, trans = decode_motion(model, dec_inputs, states[:, :last] + weight[None, :last, None] * offset, embedding)
-        r = rot[active]
-        r = torch.where((r * rot0_a).sum(-1, keepdim=True) < 0, -r, r)  # nlerp (slerp's acos has no gradient at 1)
-        rot = r_normalize(rot0_a + w_act[:, None, None] * (r - rot0_a))
-        trans = trans0_a + w_act[:, None, None] * (trans[active] - trans0_a)
-        grot, gpos = forward_kinematics(parents, rot, trans)
-        return rot, trans, grot, gpos
 
+def _evaluate(pb: _Problem, dh: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Local rotations ``(A, J, 4)``, translations, global rotations and positions of the active frames for knot
+    offsets ``dh (1, K, H)``: the optimised output blended into the network's by the fade weight (frames past
+    the window keep the network's output, whatever the recurrence would carry there)."""
+    st = pb.start
+    rot0_a, trans0_a = st.rot[pb.active], st.trans[pb.active]
+    offset = torch.einsum("tk,bkh->bth", pb.interp, dh)
+    last = pb.last
+    rot, trans = decode_motion(pb.model, pb.dec_inputs, pb.states[:, :last] + pb.weight[None, :last, None] * offset,
+                               pb.embedding)  # fmt: skip
+    r = rot[pb.active]
+    r = torch.where((r * rot0_a).sum(-1, keepdim=True) < 0, -r, r)  # nlerp (slerp's acos has no gradient at 1)
+    rot = r_normalize(rot0_a + pb.w_act[:, None, None] * (r - rot0_a))
+    trans = trans0_a + pb.w_act[:, None, None] * (trans[pb.active] - trans0_a)
+    grot, gpos = forward_kinematics(pb.kit.rig.skeleton.parents, rot, trans)
+    return rot, trans, grot, gpos
+
+
+def _contact_goal(pb: _Problem, p: ESOParams, dh: Tensor) -> Tensor:
+    """Where each gated hand vertex ``(C, 3)`` is pulled this round: the paper's smooth step from where it is
+    now toward the contact vertex."""
+    st, kit = pb.start, pb.kit
+    with torch.no_grad():
+        _, _, grot_r, gpos_r = _evaluate(pb, dh)
+        xi0 = en.vertex_positions(kit, grot_r, gpos_r, pb.c_a, st.c_i) if len(st.c_i) else torch.zeros(0, 3)
+        xj0 = en.vertex_positions(kit, grot_r, gpos_r, pb.c_a, st.c_j) if len(st.c_j) else torch.zeros(0, 3)
+        return (1 - p.step_share) * xi0 + p.step_share * xj0
+
+
+def _loss(pb: _Problem, p: ESOParams, dh: Tensor, goal: Tensor) -> Tensor:
+    """The relaxed energy (a scalar) of knot offsets ``dh (1, K, H)``: skeleton terms against the network's
+    output, planted feet held, sentinel interpenetration, hands toward ``goal (C, 3)``, touched joints held."""
+    st, kit = pb.start, pb.kit
+    s = REFERENCE_HEIGHT_M / kit.height
+    gpos0_a = st.gpos[pb.active]
+    rot, _, grot, gpos = _evaluate(pb, dh)
+    sk = en.skeleton_terms(kit, rot, st.rot[pb.active], gpos, gpos0_a)
+    loss = (
+        p.w_rotation * sk["rotation"].sum() + p.w_root * sk["root"].sum() + p.w_end_effector * sk["end_effector"].sum()
+    )
+    if pb.foot_cols:
+        drift = ((gpos[:, pb.foot_idx] - gpos0_a[:, pb.foot_idx]) * s).pow(2).sum(-1)
+        loss = loss + p.w_foot * (pb.planted[:, pb.foot_cols] * drift).sum()
+    e_int = cached_energy(st.sent.sdf, *_skin_sentinels(kit, st.sent, grot[pb.pen_a], gpos[pb.pen_a]), pb.cache)
+    loss = loss + p.w_interpenetration * e_int.sum()
+    if len(st.c_i):
+        xi = en.vertex_positions(kit, grot, gpos, pb.c_a, st.c_i)
+        loss = loss + p.w_contact * ((xi - goal) * s).pow(2).sum(-1).sum()
+        held = gpos[pb.c_a, pb.hold_joint] - st.gpos[st.c_frame, pb.hold_joint]
+        loss = loss + p.w_hold * (held * s).pow(2).sum(-1).sum()
+    return loss
+
+
+def _solve(pb: _Problem, p: ESOParams) -> Tensor:
+    """Knot offsets ``(1, K, H)`` of the encoder states after ``rounds x steps`` Adam steps."""
+    dh = torch.zeros(1, pb.interp.shape[1], pb.states.shape[-1], requires_grad=True)
+    opt = torch.optim.Adam([dh], lr=p.learning_rate, betas=p.adam_betas)
     for _ in range(max(p.rounds, 0)):
-        with torch.no_grad():
-            _, _, grot_r, gpos_r = evaluate()
-            xi0 = en.vertex_positions(kit, grot_r, gpos_r, c_a, c_i) if len(c_i) else torch.zeros(0, 3)
-            xj0 = en.vertex_positions(kit, grot_r, gpos_r, c_a, c_j) if len(c_j) else torch.zeros(0, 3)
-            goal = (1 - p.step_share) * xi0 + p.step_share * xj0
+        goal = _contact_goal(pb, p, dh)
         for _ in range(p.steps):
-            rot, trans, grot, gpos = evaluate()
-            sk = en.skeleton_terms(kit, rot, rot0_a, gpos, gpos0_a)
-            loss = p.w_rotation * sk["rotation"].sum() + p.w_root * sk["root"].sum() + p.w_end_effector * sk["end_effector"].sum()
-            if foot_cols:
-                drift = ((gpos[:, foot_idx] - gpos0_a[:, foot_idx]) * s).pow(2).sum(-1)
-                loss = loss + p.w_foot * (planted[:, foot_cols] * drift).sum()
-            e_int = cached_energy(sent.sdf, *_skin_sentinels(kit, sent, grot[pen_a], gpos[pen_a]), cache)
-            loss = loss + p.w_interpenetration * e_int.sum()
-            if len(c_i):
-                xi = en.vertex_positions(kit, grot, gpos, c_a, c_i)
-                loss = loss + p.w_contact * ((xi - goal) * s).pow(2).sum(-1).sum()
-                held = gpos[c_a, hold_joint] - gpos0[c_frame, hold_joint]
-                loss = loss + p.w_hold * (held * s).pow(2).sum(-1).sum()
+            loss = _loss(pb, p, dh, goal)
             opt.zero_grad()
             loss.backward()
             opt.step()
+    return dh
+
+
+@dataclass
+class _Check:
+    """The solved motion ``(F, J, 4)``, ``(F, J, 3)`` and the energy that decides whether it is kept: the
+    sentinels' interpenetration on the flagged frames ``(P,)`` before and after, contact distances after
+    ``(C,)`` (m), and the totals."""
+
+    rot: Tensor
+    trans: Tensor
+    before_int: Tensor
+    after_int: Tensor
+    d1: Tensor
+    e_before: float
+    e_after: float
+
+
+def _check(pb: _Problem, p: ESOParams, dh: Tensor) -> _Check:
+    """Pose the solution and compare the energy (contact + sentinel interpenetration) with the start's. The
+    check uses the sentinels too (the full mesh costs ~10x more); the metrics measure the full mesh."""
+    st, kit = pb.start, pb.kit
     with torch.no_grad():
-        rot_a, trans_a, grot, gpos = evaluate()
-        # The check uses the sentinels too (the full mesh costs ~10x more); metrics measure the full mesh.
-        before_int = e_int0[opt_frames]
-        after_int, _ = _int_energy(sent.sdf, *_skin_sentinels(kit, sent, grot[pen_a], gpos[pen_a]))
-        d1 = en.contact_distance2(kit, grot, gpos, c_a, c_i, c_j).sqrt() if len(c_i) else torch.zeros(0)
-        e_before = float(before_int.sum()) + p.w_contact * float(d0[gated].pow(2).sum())
+        rot_a, trans_a, grot, gpos = _evaluate(pb, dh)
+        before_int = st.e_int[pb.opt_frames]
+        after_int, _ = _int_energy(st.sent.sdf, *_skin_sentinels(kit, st.sent, grot[pb.pen_a], gpos[pb.pen_a]))
+        d1 = en.contact_distance2(kit, grot, gpos, pb.c_a, st.c_i, st.c_j).sqrt() if len(st.c_i) else torch.zeros(0)
+        e_before = float(before_int.sum()) + p.w_contact * float(st.d0[st.gated].pow(2).sum())
         e_after = float(after_int.sum()) + p.w_contact * float(d1.pow(2).sum())
-        rot, trans = rot0.clone(), trans0.clone()
-        rot[active], trans[active] = rot_a, trans_a
-    kept = e_after < e_before
-    moved = (d0[gated] - d1) * 100 if len(c_i) else torch.zeros(0)
-    report.update(
-        frames_optimised=int(flags.sum()), frames_touched=int(active.numel()), iterations=p.rounds * p.steps,
-        kept=bool(kept), energy_before=round(e_before, 5), energy_after=round(e_after, 5),
-        interpenetration_before=round(float(before_int.sum()), 5), interpenetration_after=round(float(after_int.sum()), 5),
-        contact_cm_before=round(float(d0[gated].mean()) * 100, 3) if len(c_i) else None,
-        contact_cm_after=round(float(d1.mean()) * 100, 3) if len(c_i) else None,
+        rot, trans = st.rot.clone(), st.trans.clone()
+        rot[pb.active], trans[pb.active] = rot_a, trans_a
+    return _Check(rot, trans, before_int, after_int, d1, e_before, e_after)
+
+
+def _ms_per_frame(started: float, frames: int) -> float:
+    return round(1000 * (time.perf_counter() - started) / max(frames, 1), 3)
+
+
+def _solved_report(pb: _Problem, p: ESOParams, ck: _Check, kept: bool) -> dict[str, Any]:
+    """The report fields of a solve: frames, energies and contact distances before and after (cm)."""
+    st = pb.start
+    has = bool(len(st.c_i))
+    moved = (st.d0[st.gated] - ck.d1) * 100 if has else torch.zeros(0)
+    return dict(
+        frames_optimised=int(pb.flags.sum()), frames_touched=int(pb.active.numel()), iterations=p.rounds * p.steps,
+        kept=bool(kept), energy_before=round(ck.e_before, 5), energy_after=round(ck.e_after, 5),
+        interpenetration_before=round(float(ck.before_int.sum()), 5),
+        interpenetration_after=round(float(ck.after_int.sum()), 5),
+        contact_cm_before=round(float(st.d0[st.gated].mean()) * 100, 3) if has else None,
+        contact_cm_after=round(float(ck.d1.mean()) * 100, 3) if has else None,
         constraint_moved_cm=[round(float(x), 2) for x in moved[:200]],
-        ms_per_frame=round(1000 * (time.perf_counter() - start) / max(f_n, 1), 3),
     )  # fmt: skip
+
+
+def optimise(
+    model: RecurrentRetargeter, kit: en.BodyKit, inputs: NetworkInputs, states: Tensor, embedding: Tensor,
+    constraints: ContactConstraints, feet: Tensor, params: ESOParams | None = None,
+) -> ESOResult:  # fmt: skip
+    """ESO of one clip. ``states (1, F, H)``, ``embedding (1, E)`` from the network; ``feet (F, 4)`` planted
+    labels. Returns the refined local rotations ``(F, J, 4)`` and translations ``(F, J, 3)``."""
+    p = params or ESOParams()
+    started = time.perf_counter()
+    st = _start(model, kit, inputs, states, embedding, constraints, p)
+    f_n = st.rot.shape[0]
+    d0, gated = st.d0, st.gated
+    flags = st.pen_flag.clone()
+    flags[st.c_frame] = True
+    report: dict[str, Any] = {
+        "frames_flagged_penetration": int(st.pen_flag.sum()), "contacts_gated": int(gated.sum()),
+        "contacts_beyond_gate": int((d0 > p.gate_m).sum()), "contacts_already_met": int((d0 <= p.met_m).sum()),
+    }  # fmt: skip
+    if not bool(flags.any()):
+        report.update(frames_optimised=0, kept=False, ms_per_frame=_ms_per_frame(started, f_n))
+        return ESOResult(st.rot, st.trans, report)
+    pb = _problem(model, kit, inputs, states, embedding, st, flags, feet, p)
+    ck = _check(pb, p, _solve(pb, p))
+    kept = ck.e_after < ck.e_before
+    report.update(_solved_report(pb, p, ck, kept), ms_per_frame=_ms_per_frame(started, f_n))
     if not kept:
-        return ESOResult(rot0, trans0, report)
-    return ESOResult(rot.detach(), trans.detach(), report)
+        return ESOResult(st.rot, st.trans, report)
+    return ESOResult(ck.rot.detach(), ck.trans.detach(), report)
 
 
 __all__ = ["ESOParams", "ESOResult", "Sentinels", "optimise", "sentinels"]
