@@ -394,33 +394,70 @@ class _HandTree:
         return torch.from_numpy(np.asarray(d, dtype=np.float64)).to(points.dtype), torch.from_numpy(self.vertex[i])
 
 
+@dataclass
+class _Block:
+    """One block of frames under :func:`_block_distances`: posed ``x (B, V, 3)`` and ``ext (B, V + caps, 3)``
+    (cap centres appended), ``n_g`` (frame, hand, part) groups, the triangle chunks' spheres ``tc_c (B, Q, 3)``,
+    ``tc_r (B, Q)``, and each group's running upper bound ``upper (n_g,)`` on its distance."""
+
+    geom: HandPartGeometry
+    x: Tensor
+    ext: Tensor
+    n_g: int
+    cutoff: float
+    slack: float
+    params: HandDistanceParams
+    tc_c: Tensor
+    tc_r: Tensor
+    upper: Tensor = field(default_factory=lambda: torch.zeros(0))
+
+
 def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: float, params: HandDistanceParams
                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
     """One block of frames ``x (B, V, 3)`` (float64): distance, inside ``(B, 2, P)``, pairs ``(B, 2, P, K, 2)``,
     pair distances ``(B, 2, P, K)``."""
-    bsz, n_v = x.shape[0], x.shape[1]
-    n_h, n_p, k_pairs = len(geom.hands), len(geom.parts), params.pairs
-    n_g = bsz * n_h * n_p
+    bsz, n_h, n_p, k_pairs = x.shape[0], len(geom.hands), len(geom.parts), params.pairs
     shape = (bsz, n_h, n_p)
-    dist_g = torch.full((n_g,), float("inf"), dtype=x.dtype)
-    inside_g = torch.zeros(n_g, dtype=torch.bool)
-    pairs = torch.full((n_g, k_pairs, 2), -1, dtype=torch.long)
-    pair_d = torch.full((n_g, k_pairs), float("inf"), dtype=x.dtype)
-    empty = (dist_g.view(shape), inside_g.view(shape), pairs.view(*shape, k_pairs, 2), pair_d.view(*shape, k_pairs))
+    n_g = bsz * n_h * n_p
     n_caps = len(geom.ring_count)
     centres = torch.zeros(bsz, n_caps, 3, dtype=x.dtype).index_add_(1, geom.ring_cap, x[:, geom.ring_vertex])
     ext = torch.cat([x, centres / geom.ring_count.clamp_min(1).to(x.dtype)[None, :, None]], dim=1)
-    # Level A: triangle chunks whose sphere reaches each hand's box grown by the cutoff.
-    tc_c, tc_r = _flat_sphere(ext, *geom.tri_chunk_members)  # (B, Q, 3), (B, Q)
+    blk = _Block(geom, x, ext, n_g, cutoff, slack, params, *_flat_sphere(ext, *geom.tri_chunk_members))
+    near = _chunks_near_hands(blk)
+    if near is None:
+        dist_g = torch.full((n_g,), float("inf"), dtype=x.dtype)
+        inside_g = torch.zeros(n_g, dtype=torch.bool)
+        pairs = torch.full((n_g, k_pairs, 2), -1, dtype=torch.long)
+        pair_d = torch.full((n_g, k_pairs), float("inf"), dtype=x.dtype)
+    else:
+        nearest = _HandTree(x, geom, torch.unique(near[0] * n_h + near[1]))
+        rows = _vertex_triangle_rows(blk, nearest, *_triangle_candidates(blk, nearest, *near))
+        dist_g, inside_g, pairs, pair_d = _group_results(blk, *rows)
+    return dist_g.view(shape), inside_g.view(shape), pairs.view(*shape, k_pairs, 2), pair_d.view(*shape, k_pairs)
+
+
+def _chunks_near_hands(blk: _Block) -> tuple[Tensor, Tensor, Tensor] | None:
+    """Level A: (frame, hand, triangle chunk) ``(N,)`` each whose chunk sphere reaches the hand's box grown by the
+    cutoff; None when there are none."""
+    x, geom = blk.x, blk.geom
     boxes = [(x[:, v].amin(1), x[:, v].amax(1)) if len(v) else (x[:, 0], x[:, 0]) for v in geom.hand_vertices]
     lo, hi = torch.stack([bx[0] for bx in boxes], 1), torch.stack([bx[1] for bx in boxes], 1)  # (B, 2, 3)
-    clamped = torch.maximum(torch.minimum(tc_c[:, None], hi[:, :, None]), lo[:, :, None])
-    near = ((tc_c[:, None] - clamped).norm(dim=-1) - tc_r[:, None] <= cutoff) & geom.measured[:, geom.tri_chunk_part][None]
+    clamped = torch.maximum(torch.minimum(blk.tc_c[:, None], hi[:, :, None]), lo[:, :, None])
+    near = ((blk.tc_c[:, None] - clamped).norm(dim=-1) - blk.tc_r[:, None] <= blk.cutoff)
+    near &= geom.measured[:, geom.tri_chunk_part][None]
     b, h, q = near.nonzero(as_tuple=True)
-    if len(b) == 0:
-        return empty
+    return None if len(b) == 0 else (b, h, q)
+
+
+def _triangle_candidates(blk: _Block, nearest: _HandTree, b: Tensor, h: Tensor, q: Tensor
+                         ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """Levels B and C: the (frame ``b``, hand ``h``, group ``g``, triangle ``t``) rows ``(N,)`` each that can still
+    beat their group's upper bound (left in ``blk.upper``), with each triangle's posed centroid ``(N, 3)`` and
+    radius ``(N,)``."""
+    geom, ext, slack, cutoff, n_g = blk.geom, blk.ext, blk.slack, blk.cutoff, blk.n_g
+    n_h, n_p = len(geom.hands), len(geom.parts)
+    tc_c, tc_r = blk.tc_c, blk.tc_r
     g = (b * n_h + h) * n_p + geom.tri_chunk_part[q]
-    nearest = _HandTree(x, geom, torch.unique(b * n_h + h))
     # Level B: triangle chunks by the distance from their centre to the nearest hand vertex (KD-tree), against a
     # tight upper bound: the chunk vertices of each group's most promising chunk (vertex to vertex).
     dn = nearest.distance(tc_c[b, q], b, h)
@@ -449,51 +486,79 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     keep = dn - t_r <= upper[g] + slack
     b, h, g, t, t_c, t_r, tri, vn, dn = (y[keep] for y in (b, h, g, t, t_c, t_r, tri, vn, dn))
     # The exact distance of each triangle to that nearest hand vertex tightens the bound to about the answer.
-    exact = (x[b, vn] - closest_points(x[b, vn], tri[:, 0], tri[:, 1], tri[:, 2])).norm(dim=-1)
-    upper = _group_min(exact, g, n_g, upper)
-    keep = dn - t_r <= upper[g] + slack
-    b, h, g, t, t_c, t_r = b[keep], h[keep], g[keep], t[keep], t_c[keep], t_r[keep]
-    # Level D: (hand vertex, triangle): the hand vertices within reach of each triangle (KD-tree ball query).
-    v, idx = nearest.within(t_c, b, h, t_r + upper[g] + slack)
+    exact = (blk.x[b, vn] - closest_points(blk.x[b, vn], tri[:, 0], tri[:, 1], tri[:, 2])).norm(dim=-1)
+    blk.upper = _group_min(exact, g, n_g, upper)
+    keep = dn - t_r <= blk.upper[g] + slack
+    return b[keep], h[keep], g[keep], t[keep], t_c[keep], t_r[keep]
+
+
+def _vertex_triangle_rows(blk: _Block, nearest: _HandTree, b: Tensor, h: Tensor, g: Tensor, t: Tensor, t_c: Tensor,
+                          t_r: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """Level D: (hand vertex, triangle) rows within reach, each with its exact closest point: frame ``b``, group
+    ``g``, triangle ``t``, hand vertex ``v`` ``(N,)`` each, closest points ``cp (N, 3)``, the signed side ``(N,)``
+    of the vertex against the triangle's plane; from the triangle rows of :func:`_triangle_candidates`."""
+    geom, x, ext, params = blk.geom, blk.x, blk.ext, blk.params
+    v, idx = nearest.within(t_c, b, h, t_r + blk.upper[g] + blk.slack)
     b, g, t, t_c, t_r = b[idx], g[idx], t[idx], t_c[idx], t_r[idx]
     p = x[b, v]
     # Per hand vertex, only the triangles that can beat its distance to the nearest of their centroids (its own
     # closest triangles, ties included, always pass: their lower bound is at most its distance).
     dense = g * geom.hand_width + geom.hand_local[v]
-    size = n_g * geom.hand_width
     dc = (p - t_c).norm(dim=-1)
-    keep = dc - t_r <= _group_min(dc, dense, size)[dense] + params.tie_m
-    b, g, t, v, p, dense = b[keep], g[keep], t[keep], v[keep], p[keep], dense[keep]
-    # Exact closest points.
+    keep = dc - t_r <= _group_min(dc, dense, blk.n_g * geom.hand_width)[dense] + params.tie_m
+    b, g, t, v, p = b[keep], g[keep], t[keep], v[keep], p[keep]
     tri = ext[b[:, None], geom.faces[t]]
     cp = closest_points(p, tri[:, 0], tri[:, 1], tri[:, 2])
-    d = (p - cp).norm(dim=-1)
     normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    side = ((p - cp) * normal).sum(-1)
+    return b, g, t, v, cp, ((p - cp) * normal).sum(-1)
+
+
+def _group_results(blk: _Block, b: Tensor, g: Tensor, t: Tensor, v: Tensor, cp: Tensor, side: Tensor
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """Per group ``(n_g,)``: distance, inside, its K closest (hand vertex, part vertex) pairs ``(n_g, K, 2)`` and
+    their distances ``(n_g, K)``, from the exact rows of :func:`_vertex_triangle_rows`."""
+    geom, x, n_g = blk.geom, blk.x, blk.n_g
+    dense = g * geom.hand_width + geom.hand_local[v]
+    size = n_g * geom.hand_width
+    d = (x[b, v] - cp).norm(dim=-1)
     # Per (group, hand vertex): closest distance, its triangle, and the sign at its closest point.
     d_dense = _group_min(d, dense, size)
-    tied = d <= d_dense[dense] + params.tie_m
+    tied = d <= d_dense[dense] + blk.params.tie_m
     best = _argmin_by_group(d, dense, size)  # entry of each key's closest triangle
     side_dense = torch.zeros(size, dtype=x.dtype).index_add_(0, dense, torch.where(tied, side, 0.0))
     keys = torch.nonzero(torch.isfinite(d_dense)).flatten()
     d_key, best, side_key = d_dense[keys], best[keys], side_dense[keys]
     g_key = keys // geom.hand_width
-    upper_key = upper[g_key]
     # A vertex's triangle set is complete (so its distance and side are right) when its distance is within the
     # bound every culling level used.
-    valid = d_key <= upper_key + slack
-    in_key = valid & (d_key <= cutoff) & (side_key < 0)  # beyond the cutoff level A may have left triangles out
+    valid = d_key <= blk.upper[g_key] + blk.slack
+    in_key = valid & (d_key <= blk.cutoff) & (side_key < 0)  # beyond the cutoff level A may have left triangles out
+    inside_g = torch.zeros(n_g, dtype=torch.bool)
     inside_g[g_key[in_key]] = True
     dist_g = _group_min(torch.where(valid, d_key, torch.inf), g_key, n_g)
     dist_g = torch.where(inside_g, torch.zeros_like(dist_g), dist_g)
-    # The K closest hand vertices of each group, each with the part vertex nearest its closest point.
     sel = torch.nonzero(valid).flatten()
-    order, rank = _ranked(g_key[sel], d_key[sel])
-    sel, rank = sel[order[rank < k_pairs]], rank[rank < k_pairs]
-    e = best[sel]
-    corners = geom.faces[t[e]]  # (S, 3)
-    corner_d = (ext[b[e][:, None], corners] - cp[e][:, None]).norm(dim=-1)
+    pairs, pair_d = _closest_pairs(blk, g_key[sel], d_key[sel], best[sel], b, t, v, cp)
+    far = dist_g > blk.cutoff
+    dist_g[far] = torch.inf
+    pairs[far] = -1
+    pair_d[far] = torch.inf
+    return dist_g, inside_g, pairs, pair_d
+
+
+def _closest_pairs(blk: _Block, g_key: Tensor, d_key: Tensor, entry: Tensor, b: Tensor, t: Tensor, v: Tensor,
+                   cp: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """The K closest hand vertices of each group ``(n_g, K, 2)`` (hand vertex, the part vertex nearest its
+    closest point) and their distances ``(n_g, K)``; from the valid keys' group, distance and best row."""
+    n_g, k_pairs, n_v = blk.n_g, blk.params.pairs, blk.x.shape[1]
+    pairs = torch.full((n_g, k_pairs, 2), -1, dtype=torch.long)
+    pair_d = torch.full((n_g, k_pairs), float("inf"), dtype=blk.x.dtype)
+    order, rank = _ranked(g_key, d_key)
+    sel, rank = order[rank < k_pairs], rank[rank < k_pairs]
+    e = entry[sel]
+    corners = blk.geom.faces[t[e]]  # (S, 3)
+    corner_d = (blk.ext[b[e][:, None], corners] - cp[e][:, None]).norm(dim=-1)
     corner_d = torch.where(corners < n_v, corner_d, torch.inf)  # a cap's centre is not a vertex of the body
     part_vertex = corners.gather(1, corner_d.argmin(1, keepdim=True))[:, 0]
     gsel = g_key[sel]
@@ -505,11 +570,7 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
         missing = (pairs[:, r, 0] < 0) & (pairs[:, 0, 0] >= 0)
         pairs[missing, r] = pairs[missing, 0]
         pair_d[missing, r] = pair_d[missing, 0]
-    far = dist_g > cutoff
-    dist_g[far] = torch.inf
-    pairs[far] = -1
-    pair_d[far] = torch.inf
-    return dist_g.view(shape), inside_g.view(shape), pairs.view(*shape, k_pairs, 2), pair_d.view(*shape, k_pairs)
+    return pairs, pair_d
 
 
 def hand_part_distances(
