@@ -8,10 +8,8 @@ benchmarks/bench/results/collisions_benchmark.json.
 
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
-import time
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,16 +23,21 @@ from retarget_core.metrics.compute import ClipMeasures, compute_metrics
 from retarget_core.motion import Motion
 from retarget_core.refine.collisions import resolve
 
-ROOT = Path(__file__).resolve().parents[2]
-SHARED = ROOT.parent / "shared" / "data"
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    add_output,
+    character_path,
+    clip_path,
+    jerk,
+    machine,
+    parser,
+    results_dir,
+    timer,
+    write_json,
+)
+
 DEFAULT_CLIPS = ("002_05", "002_08", "001_01", "005_12", "006_12")
 DEFAULT_BODIES = ("mh_male_bulky", "mh_male_muscular", "mh_female_average")
-
-
-def _jerk(m: Motion, height: float) -> float:
-    """Mean third difference of joint positions per height (per frame^3)."""
-    _, gpos = m.global_transforms()
-    return float((gpos[3:] - 3 * gpos[2:-1] + 3 * gpos[1:-2] - gpos[:-3]).norm(dim=-1).mean()) / height
 
 
 # ACCEPTANCE.md's pairs: an arm vertex against torso, head, the other arm and both legs; a leg vertex against the
@@ -52,9 +55,9 @@ def judge_like_penetration(ctx: RefineContext, m: Motion) -> dict[str, float]:
     parts = ctx.parts
     cl = torch.tensor(parts.cluster)
     tested = torch.zeros(len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
-    for a, bs in JUDGE_PAIRS.items():
-        for b in bs:
-            tested[CLUSTERS.index(a), CLUSTERS.index(b)] = True
+    for tester, others in JUDGE_PAIRS.items():
+        for other in others:
+            tested[CLUSTERS.index(tester), CLUSTERS.index(other)] = True
     s = ctx.sdf.scale_to_180
     f_n = m.num_frames
     pen, deep = torch.zeros(f_n), torch.zeros(f_n, dtype=torch.bool)
@@ -86,19 +89,19 @@ def _figures(ctx: RefineContext, m: Motion, original: ClipMeasures | None) -> tu
         "contact_satisfied_percent": s.contact_satisfied_percent,
         "m_c": s.m_c.value_at_180,
         "mpjpe_cm_at_180": s.mpjpe.value_at_180,
-        "jerk_per_height": _jerk(m, ctx.target.height),
+        "jerk_at_180": jerk(m, ctx.target.height),
         **judge_like_penetration(ctx, m),
     }, measures
 
 
 def bench_one(clip: str, body: str, frames: int, fps: float) -> dict[str, Any]:
-    ctx = context_from_files(SHARED / "motions/cmu" / f"{clip}.bvh", SHARED / "characters" / f"{body}.glb", 0, frames, fps)
-    t, cpu = time.perf_counter(), time.process_time()
-    out = resolve(ctx, ctx.before)
-    seconds, cpu_seconds = time.perf_counter() - t, time.process_time() - cpu
+    ctx = context_from_files(clip_path(clip), character_path(body), 0, frames, fps)
+    with timer() as took:
+        out = resolve(ctx, ctx.before)
+    seconds, cpu_seconds = took.wall_s, took.cpu_s
     before, measures = _figures(ctx, ctx.before, None)
     after, _ = _figures(ctx, out.motion, measures)
-    src_jerk = _jerk(ctx.source_view, ctx.source_body.height)
+    src_jerk = jerk(ctx.source_view, ctx.source_body.height)
     row = {
         "clip": clip, "body": body, "frames": ctx.num_frames, "contact_constraints": ctx.constraints.count,
         "stage_seconds": round(seconds, 3), "ms_per_frame": round(1000.0 * seconds / ctx.num_frames, 2),
@@ -110,8 +113,8 @@ def bench_one(clip: str, body: str, frames: int, fps: float) -> dict[str, Any]:
         "judge_pairs_pen_ratio": _ratio(after["judge_pairs_pen_percent"], before["judge_pairs_pen_percent"]),
         "judge_pairs_deep_frames_ratio": _ratio(after["judge_pairs_frames_deeper_than_1cm_percent"],
                                                 before["judge_pairs_frames_deeper_than_1cm_percent"]),
-        "jerk_ratio_vs_before": _ratio(after["jerk_per_height"], before["jerk_per_height"]),
-        "jerk_ratio_vs_source": _ratio(after["jerk_per_height"], src_jerk),
+        "jerk_ratio_vs_before": _ratio(after["jerk_at_180"], before["jerk_at_180"]),
+        "jerk_ratio_vs_source": _ratio(after["jerk_at_180"], src_jerk),
         "stage_report": out.report,
     }  # fmt: skip
     return row
@@ -121,16 +124,6 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     if a is None or b is None or b == 0:
         return None
     return round(a / b, 4)
-
-
-def _commit() -> str | None:
-    """The checked-out commit (with ``+dirty`` when the tree has changes), or None outside git."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        return head + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def _write(rows: list[dict[str, Any]], out: Path) -> dict[str, Any]:
@@ -146,21 +139,19 @@ def _write(rows: list[dict[str, Any]], out: Path) -> dict[str, Any]:
                                                   if r["judge_pairs_deep_frames_ratio"] is not None), default=None),
         "jerk_ratio_vs_before_max": max((r["jerk_ratio_vs_before"] for r in rows if r["jerk_ratio_vs_before"] is not None), default=None),
         "torch_threads": torch.get_num_threads(),
-        "commit": _commit(),
     }  # fmt: skip
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"summary": summary, "results": rows}, indent=1))
+    write_json(out, {"summary": summary, "machine": machine(), "results": rows}, quiet=True)
     return summary
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = parser(__doc__)
     ap.add_argument("--clips", nargs="*", default=list(DEFAULT_CLIPS))
     ap.add_argument("--bodies", nargs="*", default=list(DEFAULT_BODIES))
     ap.add_argument("--pairs", nargs="*", default=None, help="clip:body pairs, run in this order (instead of clips x bodies)")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/bench/results/collisions_benchmark.json")
+    add_output(ap, results_dir("bench") / "collisions_benchmark.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
@@ -176,8 +167,8 @@ def main() -> None:
               f"{a['judge_pairs_frames_deeper_than_1cm_percent']:.1f}% | contact cm {b['contact_distance_mean_cm_at_180']} -> "
               f"{a['contact_distance_mean_cm_at_180']} (hand-part kept {row['contacts_kept_hand_to_part']}) | jerk x{row['jerk_ratio_vs_before']} (vs source "
               f"x{row['jerk_ratio_vs_source']})", flush=True)  # fmt: skip
-        _write(rows, args.out)
-    print(json.dumps(_write(rows, args.out)))
+        _write(rows, args.output)
+    print(json.dumps(_write(rows, args.output)))
 
 
 if __name__ == "__main__":

@@ -19,21 +19,28 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "benchmarks" / "bench"))
-from job_benchmark import per_frame_ms, run_once  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    BULKY_SAMPLE,
+    REPO,
+    add_clip_options,
+    add_output,
+    clip_path,
+    machine,
+    parser,
+    per_frame_ms,
+    profile_to,
+    results_dir,
+    run_job_once,
+    write_json,
+)
 
-DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
-SAMPLES = REPO / "retarget_core" / "data" / "samples"
 TIME_RATIO_TARGET = 3.0
 MEMORY_TARGET_MB = 1536.0
 
@@ -71,30 +78,29 @@ def memory_job(glb: Path, motion: Path, frames: int, chain: str) -> dict[str, An
 def bulky_reference(args: argparse.Namespace) -> dict[str, Any]:
     """The bulky sample's default chain, ms per frame (run here or read from the job benchmark's JSON)."""
     if args.run_bulky:
-        runs = [run_once(args.motion, str(SAMPLES / "characters" / "mh_male_bulky.glb"), args.frames, args.fps, None)
-                for _ in range(2)]  # fmt: skip
+        runs = [run_job_once(args.motion, str(BULKY_SAMPLE), args.frames, args.fps, None) for _ in range(2)]
         return {"source": "run here", "ms_per_frame": per_frame_ms(runs[-1])}
     if not args.bulky.is_file():
         raise SystemExit(f"{args.bulky} is missing: run benchmarks/bench/job_benchmark.py or pass --run-bulky")
     data = json.loads(args.bulky.read_text())
-    return {"source": str(args.bulky.relative_to(REPO)), "when": data.get("when"),
+    when = data.get("when") or data.get("machine", {}).get("when")
+    return {"source": str(args.bulky.resolve().relative_to(REPO)), "when": when,
             "ms_per_frame": data["default chain"]["ms_per_frame"]}  # fmt: skip
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--motion", type=Path, default=DATA / "motions" / "cmu" / "002_08.bvh")
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--fps", type=float, default=30.0)
+    ap = parser(__doc__)
+    add_clip_options(ap)
     ap.add_argument("--runs", type=int, default=2, help="timed jobs; the first one builds the body cache")
-    ap.add_argument("--memory-motion", type=Path, default=DATA / "motions" / "cmu" / "001_01.bvh")
+    ap.add_argument("--memory-motion", type=Path, default=clip_path("001_01"))
     ap.add_argument("--memory-frames", type=int, default=1000, help="0: skip the memory job")
     ap.add_argument("--memory-chain", choices=("default", "copy"), default="default",
                     help="the memory job's stages (copy: every refinement stage off)")
-    ap.add_argument("--bulky", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "job_benchmark.json")
+    ap.add_argument("--bulky", type=Path, default=results_dir("bench") / "job_benchmark.json",
+                    help="the job benchmark's JSON: the bulky sample's default chain")
     ap.add_argument("--run-bulky", action="store_true", help="time the bulky sample here instead of reading it")
     ap.add_argument("--profile", action="store_true", help="profile one warm job (pyinstrument)")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "large_character_benchmark.json")
+    add_output(ap, results_dir("bench") / "large_character_benchmark.json")
     args = ap.parse_args()
     from retarget_core.bodies.large_character import write_large_character
     from retarget_core.loading import load_character
@@ -109,7 +115,7 @@ def main() -> None:
         print(f"large character: {character.num_vertices} vertices, {len(meshes)} meshes")
         for m in meshes:
             print(f"  {m['name']:<10} {m['role']:<10} {m['vertices']:>7} vertices  {m['reason']}")
-        runs = [run_once(args.motion, str(glb), args.frames, args.fps, None) for _ in range(args.runs)]
+        runs = [run_job_once(args.motion, str(glb), args.frames, args.fps, None) for _ in range(args.runs)]
         large = per_frame_ms(runs[-1])
         print(f"\n{args.frames} frames of {args.motion.name}, default chain (body cache: "
               f"{', '.join(r['body_cache'] for r in runs)}):")  # fmt: skip
@@ -117,7 +123,8 @@ def main() -> None:
             print(f"  {k:<20} {v:9.2f} ms/frame")
         memory = memory_job(glb, args.memory_motion, args.memory_frames, args.memory_chain) if args.memory_frames else None
         if args.profile:
-            profile(glb, args)
+            profile_to(args.output.with_name(args.output.stem + "_profile.txt"),
+                       lambda: run_job_once(args.motion, str(glb), args.frames, args.fps, None))  # fmt: skip
     bulky = bulky_reference(args)
     ratio = large["whole job"] / bulky["ms_per_frame"]["whole job"]
     out = {
@@ -125,17 +132,13 @@ def main() -> None:
         "character": {"vertices": character.num_vertices, "triangles": int(character.faces.shape[0]), "meshes": meshes},
         "runs": runs, "ms_per_frame": large, "bulky_sample": bulky,
         "time_ratio_to_bulky": round(ratio, 2), "time_ratio_target": TIME_RATIO_TARGET,
-        "memory": memory, "memory_target_mb": MEMORY_TARGET_MB,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_average_1min": round(os.getloadavg()[0], 2)},
-        "when": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "memory": memory, "memory_target_mb": MEMORY_TARGET_MB, "machine": machine(),
     }  # fmt: skip
     print(f"\nwhole job {large['whole job']} ms/frame = {ratio:.2f} x the bulky sample's (target {TIME_RATIO_TARGET})")
     if memory:
         print(f"peak memory, {memory['frames']} frames, {memory['chain']} chain: {memory['peak_rss_mb']} MB "
               f"(target {MEMORY_TARGET_MB:.0f})")  # fmt: skip
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.output}")
+    write_json(args.output, out)
 
 
 def memory_only(args: argparse.Namespace) -> None:
@@ -148,20 +151,8 @@ def memory_only(args: argparse.Namespace) -> None:
     data = json.loads(args.output.read_text()) if args.output.is_file() else {}
     data["memory"], data[f"memory_{args.memory_chain}_chain"] = memory, memory
     data["memory_target_mb"] = MEMORY_TARGET_MB
-    args.output.write_text(json.dumps(data, indent=1))
-    print(f"peak memory, {memory['frames']} frames, {memory['chain']} chain: {memory['peak_rss_mb']} MB; wrote {args.output}")
-
-
-def profile(glb: Path, args: argparse.Namespace) -> None:
-    """One warm default-chain job under pyinstrument; the call tree next to the JSON."""
-    from pyinstrument import Profiler
-
-    profiler = Profiler(interval=0.005)
-    with profiler:
-        run_once(args.motion, str(glb), args.frames, args.fps, None)
-    path = args.output.with_name(args.output.stem + "_profile.txt")
-    path.write_text(profiler.output_text(unicode=False, color=False, show_all=False, time="seconds"))
-    print(f"wrote {path}")
+    print(f"peak memory, {memory['frames']} frames, {memory['chain']} chain: {memory['peak_rss_mb']} MB")
+    write_json(args.output, data)
 
 
 if __name__ == "__main__":

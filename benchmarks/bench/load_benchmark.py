@@ -22,11 +22,7 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import secrets
-import signal
-import socket
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,34 +32,27 @@ from typing import Any
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
+from api.db import dispose_all, session_scope
+from api.migrate import upgrade
+from api.models import Asset, Job
+from api.security import create_key
 
-from api.db import dispose_all, session_scope  # noqa: E402
-from api.migrate import upgrade  # noqa: E402
-from api.models import Asset, Job  # noqa: E402
-from api.security import create_key  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    REPO,
+    add_output,
+    claim_redis_db,
+    free_port,
+    machine,
+    percentiles,
+    results_dir,
+    service_env,
+    stop_group,
+    write_json,
+)
 
 PG_ADMIN = os.environ.get("RETARGET_TEST_PG_ADMIN", "postgresql://postgres@127.0.0.1:5432/test")
 TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def claim_redis_db() -> tuple[Any, int]:
-    import redis
-
-    token = secrets.token_hex(8)
-    for db in range(15, 0, -1):
-        r = redis.Redis("127.0.0.1", 6379, db=db, socket_timeout=2)
-        if r.dbsize() == 0 and r.set("retarget-benchmark:lock", token, nx=True, ex=3600):
-            r.flushdb()
-            return r, db
-    raise SystemExit("no empty Redis database (1-15)")
 
 
 def make_database(kind: str, root: Path) -> tuple[str, Any]:
@@ -177,14 +166,13 @@ async def client_loop(port: int, raw: bytes, ok: int, end: float, out: list[floa
 
 
 def summary(samples: list[float], errors: list[str], duration: float, clients: int) -> dict[str, Any]:
-    ms = sorted(x * 1000 for x in samples)
-    q = statistics.quantiles(ms, n=100, method="inclusive") if len(ms) > 1 else (ms or [0.0]) * 99
+    """One group's latencies (p50/p95/p99/max), requests/s and errors by kind."""
     kinds: dict[str, int] = {}
     for e in errors:
         kinds[e] = kinds.get(e, 0) + 1
-    return {"clients": clients, "requests": len(ms), "p50_ms": round(q[49], 1), "p95_ms": round(q[94], 1),
-            "p99_ms": round(q[98], 1), "max_ms": round(ms[-1], 1) if ms else None,
-            "requests_per_s": round(len(ms) / duration, 1), "errors": len(errors), "error_kinds": kinds}
+    lat = percentiles(samples)
+    return {"clients": clients, "requests": lat.pop("n"), **lat, "requests_per_s": round(len(samples) / duration, 1),
+            "errors": len(errors), "error_kinds": kinds}  # fmt: skip
 
 
 Requests = bytes | list[bytes]  # one request for every client, or one per client (cycled)
@@ -203,10 +191,7 @@ async def run_level(port: int, groups: dict[str, tuple[int, Requests, int]], dur
 
 
 def start_api(root: Path, db_url: str, redis_db: int, port: int, processes: int = 1) -> subprocess.Popen[bytes]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k not in ("DATABASE_URL",)}
-    env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
-                "RETARGET_API_DATABASE_URL": db_url, "REDIS_URL": f"redis://127.0.0.1:6379/{redis_db}",
-                "OMP_NUM_THREADS": "1"})
+    env = service_env(root, db_url, REDIS_URL=f"redis://127.0.0.1:6379/{redis_db}")
     log = open(root / "api.log", "ab")  # noqa: SIM115
     return subprocess.Popen([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--port", str(port),
                              "--log-level", "warning", "--no-access-log", "--backlog", "4096",
@@ -257,12 +242,8 @@ def bench_database(kind: str, args: argparse.Namespace) -> dict[str, Any]:
                 print(f"  kept {root}")
             return {"database": kind, "levels": levels}
         finally:
-            if api is not None and api.poll() is None:
-                os.killpg(api.pid, signal.SIGTERM)
-                try:
-                    api.wait(20)
-                except subprocess.TimeoutExpired:
-                    os.killpg(api.pid, signal.SIGKILL)
+            if api is not None:
+                stop_group(api, 20)
             redis.flushdb()
             dispose_all()
             if drop is not None:
@@ -279,21 +260,19 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=8.0, help="seconds per level")
     ap.add_argument("--api-processes", type=int, default=2, help="uvicorn worker processes of the API")
     ap.add_argument("--keep", action="store_true", help="keep the data directory and API log (printed)")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "load.json")
+    add_output(ap, results_dir("bench") / "load.json")
     args = ap.parse_args()
     args.pollers = [int(x) for x in args.pollers.split(",") if x]
     args.submitters = [int(x) for x in args.submitters.split(",") if x]
     results: dict[str, Any] = {
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": machine(),
         "settings": {"duration_s": args.duration, "api_processes": args.api_processes, "broker": "redis"},
         "runs": [],
     }
     print(f"Load benchmark ({os.cpu_count()} CPUs; API, Redis, database and load generator on this machine)")
     for kind in args.databases.split(","):
         results["runs"].append(bench_database(kind, args))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=1))
-    print(f"written {args.out}")
+    write_json(args.output, results)
 
 
 if __name__ == "__main__":

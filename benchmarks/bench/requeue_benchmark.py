@@ -10,13 +10,11 @@ each round waits until an attempt runs, kills that attempt's pool process, and t
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -26,27 +24,29 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
+from sqlalchemy import select
 
-from sqlalchemy import select  # noqa: E402
+from api.db import dispose_all, session_scope, utcnow
+from api.migrate import upgrade
+from api.models import Asset, Job, WorkerProcess, new_id
+from api.queue import TASK_RUN_JOB, make_celery
+from api.security import create_key
+from api.settings import Settings
+from api.storage import Storage
 
-from api.db import dispose_all, session_scope, utcnow  # noqa: E402
-from api.migrate import upgrade  # noqa: E402
-from api.models import Asset, Job, WorkerProcess, new_id  # noqa: E402
-from api.queue import TASK_RUN_JOB, make_celery  # noqa: E402
-from api.security import create_key  # noqa: E402
-from api.settings import Settings  # noqa: E402
-from api.storage import Storage  # noqa: E402
-
-SAMPLES = REPO / "retarget_core" / "data" / "samples"
-RESULT = REPO / "benchmarks" / "bench" / "results" / "requeue_benchmark.json"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    REPO,
+    SAMPLES,
+    add_output,
+    free_port,
+    machine,
+    parser,
+    results_dir,
+    service_env,
+    stop_group,
+    write_json,
+)
 
 
 def start_redis(root: Path) -> tuple[subprocess.Popen[bytes], str]:
@@ -155,10 +155,7 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
         url = f"sqlite:///{root / 'bench.sqlite'}"
         upgrade(url)
         job_id = make_job(url, Storage(root / "data"))
-        env = {k: v for k, v in os.environ.items() if not k.startswith("RETARGET_API_") and k != "DATABASE_URL"}
-        env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
-                    "RETARGET_API_DATABASE_URL": url, "REDIS_URL": redis_url, "OMP_NUM_THREADS": "1",
-                    "RETARGET_API_MAX_JOB_ATTEMPTS": str(kills + 1)})
+        env = service_env(root, url, REDIS_URL=redis_url, RETARGET_API_MAX_JOB_ATTEMPTS=str(kills + 1))
         with open(root / "worker.log", "wb") as log:
             worker = subprocess.Popen([sys.executable, "-m", "worker", "--queues", "cpu", "--concurrency", "1"],
                                       cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -176,11 +173,7 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
                 break
     finally:
         if worker is not None:
-            os.killpg(worker.pid, signal.SIGTERM)
-            try:
-                worker.wait(30)
-            except subprocess.TimeoutExpired:
-                os.killpg(worker.pid, signal.SIGKILL)
+            stop_group(worker)
         redis_proc.terminate()
         redis_proc.wait(10)
         dispose_all()
@@ -188,8 +181,7 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
     delays = [r["queued_s"] for r in rounds if r["queued_s"] is not None]
     return {
         "what": "seconds from SIGKILL of a job's pool process to its row being queued again (next attempt)",
-        "command": "flock /tmp/heavy.lock .venv/bin/python benchmarks/bench/requeue_benchmark.py --kills "
-                   f"{kills}",
+        "command": f"flock /tmp/heavy.lock .venv/bin/python benchmarks/bench/requeue_benchmark.py --kills {kills}",
         "date": datetime.now(UTC).strftime("%Y-%m-%d"),
         "heartbeat_timeout_seconds": settings.heartbeat_timeout_seconds,
         "kills": kills,
@@ -202,16 +194,15 @@ def run(kills: int, timeout: float) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kills", type=int, default=20)
-    parser.add_argument("--timeout", type=float, default=120.0, help="give up on one kill after this long")
-    parser.add_argument("--out", type=Path, default=RESULT)
-    args = parser.parse_args()
+    ap = parser(__doc__)
+    ap.add_argument("--kills", type=int, default=20)
+    ap.add_argument("--timeout", type=float, default=120.0, help="give up on one kill after this long")
+    add_output(ap, results_dir("bench") / "requeue_benchmark.json")
+    args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up the worker and Redis when stopped
     result = run(args.kills, args.timeout)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k != "rounds"}, indent=2))
+    write_json(args.output, {**result, "machine": machine()})
 
 
 if __name__ == "__main__":

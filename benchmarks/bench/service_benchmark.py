@@ -17,12 +17,6 @@ directory and SQLite database, with Redis (a spare database number, flushed) or 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import secrets
-import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -34,38 +28,25 @@ from typing import Any
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
+from api.db import session_scope
+from api.migrate import upgrade
+from api.security import create_key
 
-from api.db import session_scope  # noqa: E402
-from api.migrate import upgrade  # noqa: E402
-from api.security import create_key  # noqa: E402
-
-
-def shared_data() -> Path:
-    env = os.environ.get("RETARGET_SHARED_DATA")
-    for c in ([Path(env)] if env else []) + [REPO.parent / "shared" / "data"]:
-        if (c / "characters").is_dir():
-            return c
-    raise SystemExit("the shared data set (../shared/data or $RETARGET_SHARED_DATA) is needed")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def claim_redis_db() -> tuple[Any, int]:
-    import redis
-
-    token = secrets.token_hex(8)
-    for db in range(15, 0, -1):
-        r = redis.Redis("127.0.0.1", 6379, db=db, socket_timeout=2)
-        if r.dbsize() == 0 and r.set("retarget-benchmark:lock", token, nx=True, ex=3600):
-            r.flushdb()
-            return r, db
-    raise SystemExit("no empty Redis database (1-15)")
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    REPO,
+    add_output,
+    claim_redis_db,
+    free_port,
+    machine,
+    parser,
+    percentiles,
+    results_dir,
+    service_env,
+    shared_data,
+    stop_group,
+    write_json,
+)
 
 
 class Service:
@@ -78,11 +59,7 @@ class Service:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         self.redis = None
-        self.env = {k: v for k, v in os.environ.items()
-                    if not k.startswith("RETARGET_API_") and k not in ("DATABASE_URL", "REDIS_URL")}
-        self.env.update({"PYTHONPATH": str(REPO), "RETARGET_API_DATA_DIR": str(root / "data"),
-                         "RETARGET_API_DATABASE_URL": self.db_url, "OMP_NUM_THREADS": "1",
-                         "RETARGET_API_PAGE_SIZE_MAX": "1000"})
+        self.env = service_env(root, self.db_url, RETARGET_API_PAGE_SIZE_MAX="1000")
         if broker == "redis":
             self.redis, db = claim_redis_db()
             self.env["REDIS_URL"] = f"redis://127.0.0.1:6379/{db}"
@@ -120,22 +97,9 @@ class Service:
 
     def stop(self) -> None:
         for p in self.procs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in self.procs.values():
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+            stop_group(p)
         if self.redis is not None:
             self.redis.flushdb()
-
-
-def percentiles(samples: list[float]) -> dict[str, float]:
-    ms = sorted(s * 1000 for s in samples)
-    q = statistics.quantiles(ms, n=100, method="inclusive") if len(ms) > 1 else ms * 99
-    return {"n": len(ms), "p50_ms": round(q[49], 2), "p95_ms": round(q[94], 2), "p99_ms": round(q[98], 2),
-            "mean_ms": round(statistics.fmean(ms), 2)}
 
 
 def load(base: str, headers: dict[str, str], clients: int, duration: float, request: Any) -> dict[str, Any]:
@@ -163,7 +127,8 @@ def load(base: str, headers: dict[str, str], clients: int, duration: float, requ
         t.join()
     wall = time.perf_counter() - t0
     flat = [x for per in latencies for x in per]
-    return {"clients": clients, **percentiles(flat), "requests_per_s": round(len(flat) / duration, 1),
+    lat = {k: v for k, v in percentiles(flat, digits=2).items() if k != "max_ms"}
+    return {"clients": clients, **lat, "requests_per_s": round(len(flat) / duration, 1),
             "errors": sum(errors), "wall_s": round(wall, 2)}
 
 
@@ -183,8 +148,39 @@ def wait_jobs(http: httpx.Client, ids: list[str], timeout: float) -> list[dict[s
     return [done[i] for i in ids]
 
 
+def throughput(svc: Service, http: httpx.Client, motion: str, character: str, workers: int, jobs: int,
+               opts: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """``jobs`` jobs submitted at once with ``workers`` cpu worker processes (a second one started here), timed
+    from the first submission to the last job finished."""
+    if workers > len([n for n in svc.procs if n.startswith("cpu")]):
+        svc.start_worker(f"cpu{workers}", "cpu")
+        svc.wait_ready(workers)
+    t0 = time.perf_counter()
+    ids = [http.post("/v1/jobs", json={"motion_id": motion, "target_character_id": character,
+                                       "options": opts}).json()["id"] for _ in range(jobs)]  # fmt: skip
+    done = wait_jobs(http, ids, 1200)
+    wall = time.perf_counter() - t0
+    runs = [j["timings"]["run_seconds"] for j in done if j["timings"]["run_seconds"]]
+    return {"workers": workers, "jobs": jobs, "succeeded": sum(j["status"] == "succeeded" for j in done),
+            "wall_s": round(wall, 2), "jobs_per_min": round(60 * jobs / wall, 2),
+            "mean_run_s": round(statistics.fmean(runs), 2) if runs else None,
+            "workers_used": sorted({j["worker"] for j in done})}  # fmt: skip
+
+
+def print_results(results: dict[str, Any], args: argparse.Namespace) -> None:
+    print(f"\nService benchmark ({results['machine']['cpus']} CPUs, broker {args.broker}, SQLite)")
+    for name in ("status_polls", "job_submissions"):
+        print(f"\n{name.replace('_', ' ')}:  clients   p50 ms   p95 ms   p99 ms   req/s  errors")
+        for r in results[name]:
+            print(f"{'':>17}{r['clients']:>7} {r['p50_ms']:>8} {r['p95_ms']:>8} {r['p99_ms']:>8} "
+                  f"{r['requests_per_s']:>7} {r['errors']:>7}")
+    print(f"\nthroughput ({args.jobs} jobs x {args.frames} frames):  workers   wall s   jobs/min   mean run s")
+    for r in results["throughput"]:
+        print(f"{'':>40}{r['workers']:>7} {r['wall_s']:>8} {r['jobs_per_min']:>10} {r['mean_run_s']:>12}")
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--clients", default="1,4,16", help="concurrent clients, comma-separated")
     ap.add_argument("--duration", type=float, default=5.0, help="seconds per latency run")
     ap.add_argument("--jobs", type=int, default=8, help="jobs per throughput run")
@@ -192,12 +188,12 @@ def main() -> None:
     ap.add_argument("--clip", default="motions/cmu/007_03.bvh", help="under the shared data directory")
     ap.add_argument("--character", default="characters/mh_male_bulky.glb")
     ap.add_argument("--broker", choices=("redis", "embedded"), default="redis")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "bench" / "results" / "service.json")
+    add_output(ap, results_dir("bench") / "service.json")
     args = ap.parse_args()
     data = shared_data()
     clients = [int(c) for c in args.clients.split(",")]
     results: dict[str, Any] = {
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": machine(),
         "broker": args.broker, "database": "sqlite",
         "settings": {"duration_s": args.duration, "jobs": args.jobs, "frames": args.frames, "clip": args.clip,
                      "character": args.character},
@@ -234,40 +230,13 @@ def main() -> None:
             queued = http.get("/v1/jobs", params={"status": "queued", "limit": 1}).json()["total"]
             results["job_submissions_queued_on_gpu"] = queued
 
-            # 2. Throughput with 1 then 2 cpu workers
-            results["throughput"] = []
-            for workers in (1, 2):
-                if workers == 2:
-                    svc.start_worker("cpu2", "cpu")
-                    svc.wait_ready(2)
-                t0 = time.perf_counter()
-                ids = [http.post("/v1/jobs", json={"motion_id": motion, "target_character_id": character,
-                                                   "options": opts}).json()["id"] for _ in range(args.jobs)]
-                done = wait_jobs(http, ids, 1200)
-                wall = time.perf_counter() - t0
-                ok = sum(j["status"] == "succeeded" for j in done)
-                runs = [j["timings"]["run_seconds"] for j in done if j["timings"]["run_seconds"]]
-                results["throughput"].append({
-                    "workers": workers, "jobs": args.jobs, "succeeded": ok, "wall_s": round(wall, 2),
-                    "jobs_per_min": round(60 * args.jobs / wall, 2),
-                    "mean_run_s": round(statistics.fmean(runs), 2) if runs else None,
-                    "workers_used": sorted({j["worker"] for j in done}),
-                })
+            results["throughput"] = [throughput(svc, http, motion, character, workers, args.jobs, opts)
+                                     for workers in (1, 2)]  # fmt: skip
         finally:
             svc.stop()
 
-    print(f"\nService benchmark ({results['machine']['cpus']} CPUs, broker {args.broker}, SQLite)")
-    for name in ("status_polls", "job_submissions"):
-        print(f"\n{name.replace('_', ' ')}:  clients   p50 ms   p95 ms   p99 ms   req/s  errors")
-        for r in results[name]:
-            print(f"{'':>17}{r['clients']:>7} {r['p50_ms']:>8} {r['p95_ms']:>8} {r['p99_ms']:>8} "
-                  f"{r['requests_per_s']:>7} {r['errors']:>7}")
-    print(f"\nthroughput ({args.jobs} jobs x {args.frames} frames):  workers   wall s   jobs/min   mean run s")
-    for r in results["throughput"]:
-        print(f"{'':>40}{r['workers']:>7} {r['wall_s']:>8} {r['jobs_per_min']:>10} {r['mean_run_s']:>12}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=1))
-    print(f"\nwritten {args.out}")
+    print_results(results, args)
+    write_json(args.output, results)
 
 
 if __name__ == "__main__":

@@ -13,19 +13,19 @@ with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee
 
 from __future__ import annotations
 
-import json
+import sys
 import time
 from pathlib import Path
 
 import torch
-import sys  # noqa: E402
-sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
-from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.metrics.acceptance import figures_from_measures, measure_acceptance
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions, refinement_stages
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
 
 FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts", "foot_accuracy",
            "end_effector_error_cm", "jerk_ratio")  # fmt: skip
@@ -62,7 +62,7 @@ def main() -> None:
         motion = run(ctx, motion).motion
         report(info.name, motion, time.perf_counter() - t)
     if a.json:
-        a.json.write_text(json.dumps({"clip": a.clip.stem, "body": a.body, "collisions": overrides, "rows": rows}, indent=1))
+        write_json(a.json, {"clip": a.clip.stem, "body": a.body, "collisions": overrides, "rows": rows})
 
 
 if __name__ == "__main__":

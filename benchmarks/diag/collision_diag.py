@@ -13,13 +13,11 @@ from __future__ import annotations
 
 import copy
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-import sys  # noqa: E402
-sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
-from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.geometry.judged_pairs import judged_allowed
 from retarget_core.metrics.acceptance import _frame, _plan, figures_from_measures, measure_acceptance
@@ -28,6 +26,9 @@ from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions
 from retarget_core.refine.collision_check import check_frames, contact_instances
 from retarget_core.resample import resample
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import JUDGE_FPS, case_parser, prepare_case, write_json  # noqa: E402
 
 
 def part_pairs(character, mapping, posed: np.ndarray) -> list[tuple[str, str, float, int]]:
@@ -74,9 +75,9 @@ def main() -> None:
     print("stage:", json.dumps({k: v for k, v in rep.items() if k not in ("energy_terms",)}))
     active = set(trace["active"])
     weight = trace["weight"]
-    judged = resample(outcome.motion, 30.0) if abs(outcome.motion.fps - 30.0) > 1e-6 else outcome.motion
+    judged = resample(outcome.motion, JUDGE_FPS) if abs(outcome.motion.fps - JUDGE_FPS) > 1e-6 else outcome.motion
     grot, gpos = judged.global_transforms()
-    ratio = outcome.motion.fps / 30.0  # stage frame of judge frame f: round(f * ratio)
+    ratio = outcome.motion.fps / JUDGE_FPS  # stage frame of judge frame f: round(f * ratio)
     rows = []
     deep_after = np.nonzero(m_after.pen_max > 0.01)[0]
     for f in deep_after:
@@ -109,7 +110,7 @@ def main() -> None:
     # Which part pairs make the judged frames > 1 cm, before and after (counts of frames by deepest pair).
     from collections import Counter
 
-    jb = resample(prepared.before, 30.0) if abs(prepared.before.fps - 30.0) > 1e-6 else prepared.before
+    jb = resample(prepared.before, JUDGE_FPS) if abs(prepared.before.fps - JUDGE_FPS) > 1e-6 else prepared.before
     for label, mot, meas in (("before", jb, m_before), ("after", judged, m_after)):
         gr, gp = mot.global_transforms()
         cnt: Counter = Counter()
@@ -120,7 +121,7 @@ def main() -> None:
                 cnt[f"{pairs[0][0]}>{pairs[0][1]}"] += 1
         print(f"deepest pairs of frames > 1 cm {label}: {dict(cnt)}")
     if a.json:
-        a.json.write_text(json.dumps({"rows": rows, "report": rep}, indent=1))
+        write_json(a.json, {"rows": rows, "report": rep})
 
 
 if __name__ == "__main__":

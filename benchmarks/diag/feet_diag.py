@@ -11,16 +11,17 @@ label (ACCEPTANCE.md): the toe joint's height above its rest height and the lowe
 
 from __future__ import annotations
 
-import json
+import sys
+from pathlib import Path
 
 import numpy as np
-import sys  # noqa: E402
-sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[2]))  # the repository
-from benchmarks.common import case_parser, prepare_case  # noqa: E402
 
 from retarget_core.character import Character
 from retarget_core.metrics.acceptance import CANONICAL_JOINTS, ClipAcceptance, measure_acceptance
 from retarget_core.metrics.feet_acceptance import REFERENCE_HEIGHT_M, SIDES
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
 
 
 def rest_toe_heights(character: Character, mapping: object) -> list[float]:
@@ -59,7 +60,7 @@ def main() -> None:
     agree = np.array(rows["source"]["planted"]) == np.array(rows["before"]["planted"])
     print(f"foot accuracy of the copy: {agree.mean():.3f}")
     if args.json:
-        args.json.write_text(json.dumps({"clip": args.clip.stem, "body": str(args.body), **rows}) + "\n")
+        write_json(args.json, {"clip": args.clip.stem, "body": str(args.body), **rows})
 
 
 if __name__ == "__main__":

@@ -12,8 +12,9 @@ Needs matplotlib (``pip install matplotlib``).
 
 from __future__ import annotations
 
-import argparse
+import sys
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -29,21 +30,19 @@ from retarget_core.copy_retarget import copy_retarget  # noqa: E402
 from retarget_core.energy.sdf import build_part_sdf, sample_pairs, segment_matrices, vertex_depths  # noqa: E402
 from retarget_core.loading import load_character, load_motion  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import frame_3d, parser, results_dir  # noqa: E402
+
 VIEWS = {"front": (10, 90), "side": (10, 0), "three-quarter": (20, 45)}
 
 
-def draw_mesh(ax, verts: np.ndarray, faces: np.ndarray, face_rgb: np.ndarray, view: tuple[float, float],  # type: ignore[no-untyped-def]
+def draw_mesh(ax: Any, verts: np.ndarray, faces: np.ndarray, face_rgb: np.ndarray, view: tuple[float, float],
               focus: np.ndarray | None = None, radius: float | None = None) -> None:  # fmt: skip
     """Shaded triangles on a 3D axis; the viewer's Y-up mesh is drawn with matplotlib's Z up. ``focus`` and
     ``radius`` (metres, Y-up coordinates) zoom onto a region; triangles outside it are left out."""
     v = verts[:, [0, 2, 1]]  # x, z, y -> matplotlib (x, y, z-up)
-    if focus is not None and radius is not None:
-        keep = (np.abs(v[faces] - focus[[0, 2, 1]]).max(-1) < radius).all(1)
-        faces, face_rgb = faces[keep], face_rgb[keep]
-        c, r = focus[[0, 2, 1]], radius
-    else:
-        lo, hi = v.min(0), v.max(0)
-        c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    keep = frame_3d(ax, v, faces, view, focus, radius)
+    faces, face_rgb = faces[keep], face_rgb[keep]
     tri = v[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.linalg.norm(n, axis=1, keepdims=True).clip(1e-12)
@@ -51,15 +50,9 @@ def draw_mesh(ax, verts: np.ndarray, faces: np.ndarray, face_rgb: np.ndarray, vi
     light = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
     shade = 0.35 + 0.65 * np.abs(n @ light)
     ax.add_collection3d(Poly3DCollection(tri, facecolors=np.clip(face_rgb * shade[:, None], 0, 1), edgecolors="none"))
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
-    ax.set_box_aspect((1, 1, 1))
-    ax.view_init(elev=view[0], azim=view[1])
-    ax.set_axis_off()
 
 
-def draw_pairs(ax, x: np.ndarray, pairs: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+def draw_pairs(ax: Any, x: np.ndarray, pairs: np.ndarray) -> None:
     """Contact pairs as red dots (hand side) and dark red triangles (other side) joined by lines."""
     if len(pairs) == 0:
         return
@@ -140,16 +133,18 @@ def render(motion_path: Path, source: str, frame: int | None, out: Path, target:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("motion", type=Path)
     ap.add_argument("--source", default="builtin:male_average", help="source body (file or builtin:<preset>)")
     ap.add_argument("--frame", type=int, default=None, help="frame to draw (default: the one with most contacts)")
     ap.add_argument("--target", default=None, help="also draw the copy baseline's penetration on this body")
     ap.add_argument("--max-frames", type=int, default=10_000)
-    ap.add_argument("-o", "--output", type=Path, default=Path("contacts.png"))
+    ap.add_argument("-o", "--output", type=Path, default=None,
+                    help="the PNG (default: benchmarks/diag/results/contacts_<clip>.png)")
     args = ap.parse_args()
-    info = render(args.motion, args.source, args.frame, args.output, args.target, args.max_frames)
-    print(args.output, info)
+    out = args.output or results_dir("diag") / f"contacts_{args.motion.stem}.png"
+    info = render(args.motion, args.source, args.frame, out, args.target, args.max_frames)
+    print(out, info)
 
 
 if __name__ == "__main__":

@@ -18,10 +18,11 @@ and prints one JSON line per frame with the figures of the title.
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -34,9 +35,12 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from retarget_core import rotations  # noqa: E402
 from retarget_core.body_cache import part_sdf_for  # noqa: E402
-from retarget_core.body_parts import CLUSTERS  # noqa: E402
+from retarget_core.body_parts import CLUSTERS, BodyParts  # noqa: E402
+from retarget_core.canonical import JointMapping  # noqa: E402
+from retarget_core.character import Character  # noqa: E402
 from retarget_core.copy_retarget import copy_retarget  # noqa: E402
 from retarget_core.energy.sdf import (  # noqa: E402
+    PartSDF,
     SDFParams,
     build_part_sdf,
     effective_depth,
@@ -44,9 +48,12 @@ from retarget_core.energy.sdf import (  # noqa: E402
     sample_pairs,
     segment_matrices,
 )
-from retarget_core.loading import load_character, load_motion  # noqa: E402
+from retarget_core.loading import load_character  # noqa: E402
 from retarget_core.metrics.compute import MetricParams, measure_clip  # noqa: E402
-from retarget_core.resample import resample  # noqa: E402
+from retarget_core.motion import Motion  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import JUDGE_FPS, frame_3d, load_clip, parser, results_dir  # noqa: E402
 
 PART_COLORS = {
     "head": "#9b59b6", "torso": "#e67e22", "left_arm": "#2e86de", "right_arm": "#00b8b8",
@@ -68,14 +75,15 @@ class Counted:
     geodesic: np.ndarray
 
 
-def rest_geodesic(character, parts, limit: float) -> torch.Tensor:  # type: ignore[no-untyped-def]
+def rest_geodesic(character: Character, parts: BodyParts, limit: float) -> torch.Tensor:
     """``(V, S)`` distance along the rest mesh from every vertex to each segment (m; ``inf`` beyond ``limit``)."""
     geo = geodesic_to_parts(character.vertices.double().numpy(), character.faces.numpy().astype(np.int64),
                             parts.vertex_part.numpy(), parts.num_parts, limit)  # fmt: skip
     return torch.from_numpy(geo)
 
 
-def counted_at(character, parts, sdf, geodesic, grot, gpos, tolerance: float) -> tuple[np.ndarray, Counted]:  # type: ignore[no-untyped-def]
+def counted_at(character: Character, parts: BodyParts, sdf: PartSDF, geodesic: torch.Tensor, grot: torch.Tensor,
+               gpos: torch.Tensor, tolerance: float) -> tuple[np.ndarray, Counted]:  # fmt: skip
     """Posed vertices ``(V, 3)`` of one frame and its counted vertices (deeper than ``tolerance``);
     ``geodesic`` from :func:`rest_geodesic`."""
     with torch.no_grad():
@@ -92,19 +100,13 @@ def counted_at(character, parts, sdf, geodesic, grot, gpos, tolerance: float) ->
     return posed[0].numpy(), Counted(hot.numpy(), best[hot].numpy(), seg[hot].numpy(), geodesic[hot, seg[hot]].numpy())
 
 
-def draw_xray(ax, verts: np.ndarray, faces: np.ndarray, counted: Counted, cluster_of: np.ndarray,  # type: ignore[no-untyped-def]
+def draw_xray(ax: Any, verts: np.ndarray, faces: np.ndarray, counted: Counted, cluster_of: np.ndarray,
               view: tuple[float, float], k180: float, focus: np.ndarray | None = None, radius: float | None = None) -> None:  # fmt: skip
     """The body as faint triangles and the counted vertices as dots coloured by part (size by depth); counted
     vertices within :data:`FOLD_BAND_M` of the part they enter as black crosses."""
     fold_band = FOLD_BAND_M / k180
     v = verts[:, [0, 2, 1]]  # Y-up mesh -> matplotlib z-up
-    if focus is not None and radius is not None:
-        keep = (np.abs(v[faces] - focus[[0, 2, 1]]).max(-1) < radius).all(1)
-        faces = faces[keep]
-        c, r = focus[[0, 2, 1]], radius
-    else:
-        lo, hi = v.min(0), v.max(0)
-        c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    faces = faces[frame_3d(ax, v, faces, view, focus, radius, zoom=1.45)]
     ax.add_collection3d(Poly3DCollection(v[faces], facecolors=(0.55, 0.58, 0.62, 0.05), edgecolors="none"))
     if len(counted.vertex):
         p = v[counted.vertex]
@@ -114,15 +116,9 @@ def draw_xray(ax, verts: np.ndarray, faces: np.ndarray, counted: Counted, cluste
         fold = counted.geodesic < fold_band
         if fold.any():  # counted vertices in a joint fold: black crosses (a good measure has none)
             ax.scatter(*p[fold].T, c="black", s=40, marker="x", depthshade=False, linewidths=1.2)
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
-    ax.set_box_aspect((1, 1, 1), zoom=1.45)
-    ax.view_init(elev=view[0], azim=view[1])
-    ax.set_axis_off()
 
 
-def draw_section(ax, verts: np.ndarray, faces: np.ndarray, face_cluster: np.ndarray, counted: Counted,  # type: ignore[no-untyped-def]
+def draw_section(ax: Any, verts: np.ndarray, faces: np.ndarray, face_cluster: np.ndarray, counted: Counted,
                  cluster_of: np.ndarray, origin: np.ndarray, normal: np.ndarray, up: np.ndarray, radius: float, k180: float) -> None:  # fmt: skip
     """Each part's outline in the plane (origin, normal), and the counted vertices within 1 cm of it."""
     normal = normal / np.linalg.norm(normal)
@@ -165,7 +161,8 @@ def summary_lines(counted: Counted, cluster_of: np.ndarray, seg_cluster: np.ndar
     return lines, out
 
 
-def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int, out_dir: Path, suffix: str = "") -> dict:  # type: ignore[no-untyped-def]
+def render_frame(clip: str, character: Character, parts: BodyParts, sdf: PartSDF, geodesic: torch.Tensor, motion: Motion,
+                 frame: int, out_dir: Path, suffix: str = "") -> dict[str, Any]:  # fmt: skip
     k180 = 1.80 / character.height
     tol = MetricParams().penetration_tolerance_m / k180
     grot, gpos = motion.slice(frame, frame + 1).global_transforms()
@@ -222,7 +219,8 @@ def render_frame(clip: str, character, parts, sdf, geodesic, motion, frame: int,
             "percent": round(pct, 3), "fold_vertices": folds, "by_pair": table, "png": str(path)}  # fmt: skip
 
 
-def pick_frames(character, mapping, sdf, motion, count: int, gap: int = 15) -> list[int]:  # type: ignore[no-untyped-def]
+def pick_frames(character: Character, mapping: JointMapping, sdf: PartSDF, motion: Motion, count: int,
+                gap: int = 15) -> list[int]:  # fmt: skip
     """The ``count`` frames with the most counted vertices, at least ``gap`` frames apart."""
     m = measure_clip(character, mapping, sdf, motion)
     tol = MetricParams().penetration_tolerance_m * character.height / 1.80
@@ -237,7 +235,7 @@ def pick_frames(character, mapping, sdf, motion, count: int, gap: int = 15) -> l
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("motion", type=Path)
     ap.add_argument("--body", action="append", required=True, help="target body (file or builtin:<preset>)")
     ap.add_argument("--frames", type=int, nargs="*", default=[])
@@ -246,11 +244,11 @@ def main() -> None:
     ap.add_argument("--dead-zone-cm", type=float, default=None,
                     help="the geodesic ramp's fold band (SDFParams.geodesic_dead_zone_m, cm at 1.80 m) to draw with; "
                     "0 draws what the measure counted before the band existed")  # fmt: skip
-    ap.add_argument("-o", "--out-dir", type=Path, default=Path("benchmarks/diag/results"))
+    ap.add_argument("-o", "--out-dir", type=Path, default=results_dir("diag"), help="where the PNGs go")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    loaded = load_motion(args.motion)
-    source = resample(loaded.motion, 30.0).slice(0, args.max_frames)
+    loaded = load_clip(args.motion, JUDGE_FPS, args.max_frames)
+    source = loaded.motion
     for body in args.body:
         tgt = load_character(body)
         ch = tgt.character

@@ -10,10 +10,10 @@ where jitter starts. Prints a table and writes benchmarks/diag/results/source_ca
 
 from __future__ import annotations
 
-import argparse
 import json
-import time
+import sys
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -21,13 +21,23 @@ from retarget_core import rotations
 from retarget_core.body_cache import part_sdf_for
 from retarget_core.contacts.foot_contact import detect_foot_contacts
 from retarget_core.copy_retarget import copy_retarget
-from retarget_core.loading import load_motion
+from retarget_core.metrics.report import SourceMetrics
 from retarget_core.metrics.source import measure_source
 from retarget_core.motion import Motion
-from retarget_core.resample import resample
-from retarget_core.source_body import source_body_for
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    JUDGE_FPS,
+    SHARED_DATA,
+    add_output,
+    load_clip,
+    parser,
+    results_dir,
+    source_view,
+    timer,
+    write_json,
+)
+
 FIGURES = ("hand_inside_frames_percent", "hand_depth_max", "foot_skate", "foot_slide", "foot_slide_frames_percent",
            "ground_below_frames_percent", "ground_penetration_mean", "foot_float_mean", "jerk", "jerk_to_acceleration")  # fmt: skip
 
@@ -44,7 +54,7 @@ def jittered(motion: Motion, position_m: float, angle_deg: float, seed: int = 0)
     return Motion(motion.skeleton, motion.fps, rotations.mul(motion.rotations, noise), trans, motion.name + "+jitter")
 
 
-def figures(metrics) -> dict:  # type: ignore[no-untyped-def]
+def figures(metrics: SourceMetrics) -> dict[str, Any]:
     out = {}
     for name in FIGURES:
         v = getattr(metrics, name)
@@ -54,32 +64,29 @@ def figures(metrics) -> dict:  # type: ignore[no-untyped-def]
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--clips", nargs="*", default=None)
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/diag/results/source_calibration.json"))
+    ap = parser(__doc__)
+    ap.add_argument("--clips", nargs="*", default=None, help="clip names (default: every shared CMU clip)")
+    ap.add_argument("--frames", type=int, default=300, help="first frames at 30 fps")
+    add_output(ap, results_dir("diag") / "source_calibration.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    paths = sorted((SHARED / "motions" / "cmu").glob("*.bvh"))
+    paths = sorted((SHARED_DATA / "motions" / "cmu").glob("*.bvh"))
     if args.clips:
         paths = [p for p in paths if p.stem in args.clips]
     rows = []
-    started = time.perf_counter()
-    for path in paths:
-        loaded = load_motion(path)
-        motion = resample(loaded.motion, 30.0).slice(0, args.frames)
-        body, body_map = source_body_for(motion.skeleton, loaded.mapping)
-        _, sdf = part_sdf_for(body, body_map)
-        for variant, m in (("clean", motion), ("jitter 1 mm / 0.3 deg", jittered(motion, 0.001, 0.3))):
-            view = copy_retarget(m, loaded.mapping, body.skeleton, body_map)
-            grot, gpos = view.global_transforms()
-            feet = detect_foot_contacts(gpos, body.skeleton.rest_global()[1], body_map, body.height, view.fps)
-            metrics, warnings = measure_source(body, body_map, view, sdf, feet)
-            row = {"clip": path.stem, "variant": variant, **figures(metrics)}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({"seconds": round(time.perf_counter() - started, 1), "rows": rows}, indent=1))
+    with timer() as took:
+        for path in paths:
+            loaded = load_clip(path, JUDGE_FPS, args.frames)
+            body, body_map, clean = source_view(loaded)
+            _, sdf = part_sdf_for(body, body_map)
+            jitter = copy_retarget(jittered(loaded.motion, 0.001, 0.3), loaded.mapping, body.skeleton, body_map)
+            for variant, view in (("clean", clean), ("jitter 1 mm / 0.3 deg", jitter)):
+                _, gpos = view.global_transforms()
+                feet = detect_foot_contacts(gpos, body.skeleton.rest_global()[1], body_map, body.height, view.fps)
+                metrics, _ = measure_source(body, body_map, view, sdf, feet)
+                rows.append({"clip": path.stem, "variant": variant, **figures(metrics)})
+                print(json.dumps(rows[-1]), flush=True)
+    write_json(args.output, {"seconds": round(took.wall_s, 1), "rows": rows})
 
 
 if __name__ == "__main__":

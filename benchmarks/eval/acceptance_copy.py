@@ -14,28 +14,35 @@ Run it under the heavy-job lock:
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-
-from retarget_core import heldout  # noqa: E402
-from retarget_core.copy_retarget import copy_retarget  # noqa: E402
-from retarget_core.loading import load_character, load_motion  # noqa: E402
-from retarget_core.metrics.acceptance import (  # noqa: E402
+from retarget_core import heldout
+from retarget_core.copy_retarget import copy_retarget
+from retarget_core.loading import LoadedCharacter, load_character
+from retarget_core.metrics.acceptance import (
     AcceptanceFigures,
     figures_from_measures,
     measure_acceptance,
     meets_targets,
 )
-from retarget_core.resample import resample  # noqa: E402
-from retarget_core.source_body import source_body_for  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    JUDGE_FPS,
+    SHARED_DATA,
+    add_output,
+    load_clip,
+    parser,
+    results_dir,
+    source_view,
+    write_json,
+)
 
 SUMMARY_FIELDS = (
     "pen_percent", "frames_over_1cm_percent", "head_percent", "contact_preservation", "false_contacts",
@@ -45,13 +52,6 @@ SUMMARY_FIELDS = (
 ABSOLUTE_TARGETS = (
     "contact_preservation", "false_contacts", "foot_accuracy", "skate", "ground_penetration", "float", "jerk_ratio",
 )  # fmt: skip
-
-
-def _default_motions() -> Path:
-    for c in (REPO.parent / "shared" / "data", REPO.parent.parent / "shared" / "data"):
-        if (c / "motions" / "cmu").is_dir():
-            return c / "motions" / "cmu"
-    return REPO / "data" / "motions" / "cmu"
 
 
 def _fmt(v: float | None, digits: int = 2) -> str:
@@ -72,7 +72,7 @@ def _summary(figs: list[AcceptanceFigures]) -> dict[str, dict[str, float | None]
 
 def _report(
     args: argparse.Namespace, bodies: list, params: list, sources: dict, cases: list, started: float, complete: bool
-) -> dict[str, object]:
+) -> dict[str, Any]:
     figs = [AcceptanceFigures(**c["figures"]) for c in cases]
     per_body = {n: _summary([f for c, f in zip(cases, figs, strict=True) if c["body"] == n]) for n, _ in bodies}
     timing = [f.seconds_per_frame for f in figs] + [s["seconds_per_frame"] for s in sources.values()]
@@ -80,7 +80,7 @@ def _report(
     report = {
         "what": "ACCEPTANCE.md figures of the plain copy (copy_retarget) on the held-out split",
         "complete": complete,
-        "settings": {"max_frames": args.max_frames, "fps": 30.0, "torch_threads": 1},
+        "settings": {"max_frames": args.max_frames, "fps": JUDGE_FPS, "torch_threads": 1},
         "bodies": [{"name": n, **p.model_dump()} for (n, _), p in zip(bodies, params, strict=True)],
         "sources": sources,
         "cases": cases,
@@ -90,91 +90,90 @@ def _report(
         "cpu_seconds_per_frame": {"mean": statistics.fmean(cpu), "max": max(cpu)} if cpu else None,
         "seconds": round(time.perf_counter() - started, 1),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1))
+    write_json(args.output, report, quiet=True)
     return report
 
 
+HEADER = (
+    f"{'clip':>7} {'body':>15} {'pen%v':>6} {'>1cm%':>6} {'head%v':>6} {'keep':>5} {'false':>5} {'foot':>5} "
+    f"{'skate':>5} {'gpen':>5} {'float':>5} {'EE cm':>6} {'jerk':>5} {'ms/f':>5} {'cpu':>4}"
+)
+
+
+def _line(clip: str, name: str, fig: AcceptanceFigures) -> str:
+    """One printed row of :data:`HEADER`."""
+    return (
+        f"{clip:>7} {name:>15} {_fmt(fig.pen_percent):>6} {_fmt(fig.frames_over_1cm_percent, 0):>6} "
+        f"{_fmt(fig.head_percent):>6} {_fmt(fig.contact_preservation):>5} {_fmt(fig.false_contacts, 3):>5} "
+        f"{_fmt(fig.foot_accuracy):>5} {_fmt(fig.skate_cm):>5} {_fmt(fig.ground_penetration_cm):>5} "
+        f"{_fmt(fig.float_cm):>5} {_fmt(fig.end_effector_error_cm):>6} {_fmt(fig.jerk_ratio):>5} "
+        f"{fig.seconds_per_frame * 1000:>5.0f} {fig.cpu_seconds_per_frame * 1000:>4.0f}"
+    )
+
+
+def measure_clip(path: Path, max_frames: int, bodies: list[tuple[str, LoadedCharacter]]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The source's figures and, per body, the copy's judged figures for one clip (rows printed as they come)."""
+    loaded = load_clip(path, JUDGE_FPS, max_frames)
+    body, body_map, view = source_view(loaded)
+    src = measure_acceptance(body, body_map, view)
+    source = {
+        "frames": src.num_frames,
+        "source_body_height_m": round(body.height, 4),
+        "hand_contact_frames": int((src.hand_distance < 0.015).any(axis=(1, 2)).sum()),
+        "pen_percent": float((src.pen_count / src.num_vertices).mean() * 100.0),
+        "head_percent": float((src.head_count / src.num_vertices).mean() * 100.0),
+        "seconds_per_frame": src.seconds / max(src.num_frames, 1),
+        "cpu_seconds_per_frame": src.cpu_seconds / max(src.num_frames, 1),
+    }
+    cases = []
+    for name, target in bodies:
+        result = copy_retarget(loaded.motion, loaded.mapping, target.character.skeleton, target.mapping)
+        fig = figures_from_measures(measure_acceptance(target.character, target.mapping, result), src)
+        checks = meets_targets(fig, fig)
+        cases.append({"clip": path.stem, "body": name, "figures": fig.model_dump(),
+                      "absolute_targets_met": {k: checks[k].met for k in ABSOLUTE_TARGETS}})  # fmt: skip
+        print(_line(path.stem, name, fig), flush=True)
+    return source, cases
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--motions", type=Path, default=_default_motions(), help="folder of the CMU clips")
+    ap = parser(__doc__)
+    ap.add_argument("--motions", type=Path, default=SHARED_DATA / "motions" / "cmu", help="folder of the CMU clips")
     ap.add_argument("--max-frames", type=int, default=300, help="first frames of each clip at 30 fps")
     ap.add_argument("--clips", nargs="*", help="a subset of the held-out clips (file stems)")
     ap.add_argument("--bodies", nargs="*", help="a subset of the held-out bodies (names)")
     ap.add_argument("--cache", type=Path, default=None, help="where the held-out bodies are cached as GLB")
-    ap.add_argument("-o", "--out", type=Path, default=REPO / "benchmarks" / "eval" / "results" / "acceptance_copy.json")
+    add_output(ap, results_dir("eval") / "acceptance_copy.json")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     started = time.perf_counter()
-
     split = heldout.load_split()
     params = [p for p in split.bodies if not args.bodies or p.name in args.bodies]
     t = time.perf_counter()
     bodies = [(p.name, load_character(heldout.body_path(p, args.cache))) for p in params]
     print(f"{len(bodies)} held-out bodies ready in {time.perf_counter() - t:.1f} s", flush=True)
     clip_paths = [p for p in heldout.clip_paths(args.motions) if not args.clips or p.stem in args.clips]
-
-    cases: list[dict[str, object]] = []
-    sources: dict[str, dict[str, object]] = {}
-    header = (
-        f"{'clip':>7} {'body':>15} {'pen%v':>6} {'>1cm%':>6} {'head%v':>6} {'keep':>5} {'false':>5} {'foot':>5} "
-        f"{'skate':>5} {'gpen':>5} {'float':>5} {'EE cm':>6} {'jerk':>5} {'ms/f':>5} {'cpu':>4}"
-    )
-    print(header, flush=True)
+    cases: list[dict[str, Any]] = []
+    sources: dict[str, dict[str, Any]] = {}
+    print(HEADER, flush=True)
     for path in clip_paths:
-        loaded = load_motion(path)
-        motion = resample(loaded.motion, 30.0).slice(0, args.max_frames)
-        if loaded.source_character is not None:
-            body, body_map = loaded.source_character.character, loaded.source_character.mapping
-        else:
-            body, body_map = source_body_for(motion.skeleton, loaded.mapping)
-        view = copy_retarget(motion, loaded.mapping, body.skeleton, body_map)
-        src = measure_acceptance(body, body_map, view)
-        contact_frames = int((src.hand_distance < 0.015).any(axis=(1, 2)).sum())
-        sources[path.stem] = {
-            "frames": src.num_frames,
-            "source_body_height_m": round(body.height, 4),
-            "hand_contact_frames": contact_frames,
-            "pen_percent": float((src.pen_count / src.num_vertices).mean() * 100.0),
-            "head_percent": float((src.head_count / src.num_vertices).mean() * 100.0),
-            "seconds_per_frame": src.seconds / max(src.num_frames, 1),
-            "cpu_seconds_per_frame": src.cpu_seconds / max(src.num_frames, 1),
-        }
-        for name, target in bodies:
-            result = copy_retarget(motion, loaded.mapping, target.character.skeleton, target.mapping)
-            res = measure_acceptance(target.character, target.mapping, result)
-            fig = figures_from_measures(res, src)
-            checks = meets_targets(fig, fig)
-            cases.append(
-                {
-                    "clip": path.stem,
-                    "body": name,
-                    "figures": fig.model_dump(),
-                    "absolute_targets_met": {k: checks[k].met for k in ABSOLUTE_TARGETS},
-                }
-            )
-            print(
-                f"{path.stem:>7} {name:>15} {_fmt(fig.pen_percent):>6} {_fmt(fig.frames_over_1cm_percent, 0):>6} "
-                f"{_fmt(fig.head_percent):>6} {_fmt(fig.contact_preservation):>5} {_fmt(fig.false_contacts, 3):>5} "
-                f"{_fmt(fig.foot_accuracy):>5} {_fmt(fig.skate_cm):>5} {_fmt(fig.ground_penetration_cm):>5} "
-                f"{_fmt(fig.float_cm):>5} {_fmt(fig.end_effector_error_cm):>6} {_fmt(fig.jerk_ratio):>5} "
-                f"{fig.seconds_per_frame * 1000:>5.0f} {fig.cpu_seconds_per_frame * 1000:>4.0f}",
-                flush=True,
-            )
+        sources[path.stem], clip_cases = measure_clip(path, args.max_frames, bodies)
+        cases += clip_cases
         _report(args, bodies, params, sources, cases, started, complete=False)  # partial results as they come
-
     report = _report(args, bodies, params, sources, cases, started, complete=True)
-    timing = [c["figures"]["seconds_per_frame"] for c in cases] + [v["seconds_per_frame"] for v in sources.values()]
-    cpu = [c["figures"]["cpu_seconds_per_frame"] for c in cases] + [v["cpu_seconds_per_frame"] for v in sources.values()]
-    s = report["summary"]
-    print("\nall cases: " + ", ".join(f"{k} {_fmt(v['min'])}..{_fmt(v['max'])}" for k, v in s.items()))  # type: ignore[union-attr]
-    if timing:
-        print(
-            f"time per frame: mean {statistics.fmean(timing) * 1000:.0f} ms, max {max(timing) * 1000:.0f} ms wall; "
-            f"CPU mean {statistics.fmean(cpu) * 1000:.0f} ms, max {max(cpu) * 1000:.0f} ms"
-        )
-    print(f"wrote {args.out} ({report['seconds']} s)")
+    _print_summary(report)
+    print(f"wrote {args.output} ({report['seconds']} s)")
     return 0
+
+
+def _print_summary(report: dict[str, Any]) -> None:
+    """Each figure's range over all cases, and the time per frame (wall and CPU)."""
+    s = report["summary"]
+    print("\nall cases: " + ", ".join(f"{k} {_fmt(v['min'])}..{_fmt(v['max'])}" for k, v in s.items()))
+    wall, cpu = report["seconds_per_frame"], report["cpu_seconds_per_frame"]
+    if wall:
+        print(f"time per frame: mean {wall['mean'] * 1000:.0f} ms, max {wall['max'] * 1000:.0f} ms wall; "
+              f"CPU mean {cpu['mean'] * 1000:.0f} ms, max {cpu['max'] * 1000:.0f} ms")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -18,10 +18,10 @@ queries and of the whole detection (single torch thread, wall and CPU).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -31,44 +31,46 @@ import torch
 from retarget_core.body_parts import CLUSTERS, body_parts
 from retarget_core.contacts.hand_distance import HandDistanceParams, hand_part_distances, hand_part_geometry
 from retarget_core.contacts.self_contact import SelfContactParams, contacts_from_distances
-from retarget_core.copy_retarget import copy_retarget
-from retarget_core.loading import load_motion
-from retarget_core.resample import resample, select_frames
-from retarget_core.source_body import source_body_for
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("RETARGET_SHARED_DATA", REPO.parent / "shared" / "data"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
+from benchmarks.common import (  # noqa: E402
+    SHARED_DATA,
+    add_output,
+    load_clip,
+    parser,
+    results_dir,
+    source_view,
+    timer,
+    write_json,
+)
+
 REFERENCE_M = 0.015  # ACCEPTANCE.md: a source contact is a hand within 1.5 cm of a part
 FAR_M = 0.03  # the "hands more than 3 cm from everything"
 BANDS_M = (0.0, 0.005, 0.01, 0.015)  # histogram of the nearest hand's distance on reference frames
 
 
 def clip_paths(names: list[str] | None) -> list[Path]:
-    paths = sorted((DATA / "motions" / "cmu").glob("*.bvh")) + sorted((DATA / "motions" / "cmu_mb").glob("*.bvh"))
+    motions = SHARED_DATA / "motions"
+    paths = sorted((motions / "cmu").glob("*.bvh")) + sorted((motions / "cmu_mb").glob("*.bvh"))
     if names:
         paths = [p for p in paths if p.stem in names or f"{p.parent.name}/{p.stem}" in names]
     return paths
 
 
 def measure_clip(path: Path, max_frames: int | None, fps: float) -> dict[str, Any]:
-    loaded = load_motion(path)
-    motion = resample(loaded.motion, fps)
-    if max_frames:
-        motion = select_frames(motion, 0, max_frames)
-    body, mapping = source_body_for(motion.skeleton, loaded.mapping)
-    view = copy_retarget(motion, loaded.mapping, body.skeleton, mapping)
+    body, mapping, view = source_view(load_clip(path, fps, max_frames))
     parts = body_parts(body, mapping)
     grot, gpos = view.global_transforms()
     with torch.no_grad():
         posed = body.pose_vertices(grot, gpos)
     params = SelfContactParams()
     dparams = HandDistanceParams(pairs=params.pairs)
-    wall, cpu = time.perf_counter(), time.process_time()
-    geom = hand_part_geometry(parts, body.vertices, body.height, dparams)
-    dist = hand_part_distances(body, parts, posed, dparams, geom)
-    wall_d = time.perf_counter() - wall
-    contacts = contacts_from_distances(parts, posed, dist, body.height, view.fps, params)
-    wall_all, cpu_all = time.perf_counter() - wall, time.process_time() - cpu
+    with timer() as whole:
+        with timer() as distances:
+            geom = hand_part_geometry(parts, body.vertices, body.height, dparams)
+            dist = hand_part_distances(body, parts, posed, dparams, geom)
+        contacts = contacts_from_distances(parts, posed, dist, body.height, view.fps, params)
+    wall_d, wall_all, cpu_all = distances.wall_s, whole.wall_s, whole.cpu_s
     s = body.height / 1.80
     d = torch.where(dist.measured[None], dist.distance, torch.inf)  # (F, 2, P)
     nearest = d.amin((1, 2))
@@ -153,12 +155,12 @@ def write_markdown(result: dict[str, Any], path: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--clips", nargs="*", help="clip names (e.g. 002_07); default: every shared clip")
     ap.add_argument("--max-frames", type=int, default=300, help="frames per clip at 30 fps (0: all)")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--min-contact-frames", type=int, default=15, help="reference frames for a clip to count")
-    ap.add_argument("-o", "--output", type=Path, default=REPO / "benchmarks" / "eval" / "results" / "contact_recall.json")
+    add_output(ap, results_dir("eval") / "contact_recall.json", "the result JSON; the table beside it as .md")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
@@ -197,8 +199,7 @@ def main() -> None:
         "summary": summary,
         "clips": rows,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=1))
+    write_json(args.output, result)
     write_markdown(result, args.output.with_suffix(".md"))
     print(json.dumps(summary, indent=1))
 
