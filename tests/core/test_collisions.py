@@ -21,6 +21,8 @@ from retarget_core.contacts.foot_contact import FootContacts
 from retarget_core.contacts.self_contact import SelfContacts
 from retarget_core.context import RefineContext
 from retarget_core.energy.sdf import build_part_sdf, segment_matrices
+from retarget_core.metrics.acceptance import measure_acceptance
+from retarget_core.metrics.acceptance_body import CONTACT_PARTS
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import check_frames, contact_instances
 from retarget_core.refine.collision_matrix import cluster_collision_matrix
@@ -200,6 +202,12 @@ def test_hand_sunk_into_the_belly_ends_on_its_surface(bulky: Character) -> None:
     # (the judge counts a sunk hand as penetration); "on its surface" is within 1 cm.
     assert distance_after < 0.01, out.report
     assert out.report["contacts"]["kept_after"] == 1.0
+    # The same, as the independent measure reads it: the left hand on the torso and no limb vertex 1 cm deep.
+    mapping = mapping_by_name(bulky.skeleton.names)
+    assert float(measure_acceptance(bulky, mapping, before).pen_max.max()) > 0.02  # the judge sees it deep before
+    judged = measure_acceptance(bulky, mapping, out.motion)
+    assert float(judged.hand_distance[:, 0, CONTACT_PARTS.index("torso")].max()) < 0.01
+    assert float(judged.pen_max.max()) < 0.01
 
 
 def test_rest_pose_comes_out_unchanged(bulky: Character) -> None:
