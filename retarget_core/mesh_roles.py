@@ -7,7 +7,7 @@ props). The rules are geometric and apply in order to every mesh but the largest
 4. a mesh whose vertices lie inside the body or just outside it (within :data:`OVER_BAND_M`) is over it: a
    garment, hair, a glove;
 5. a mesh of less than :data:`SMALL_AREA_SHARE` of the primary body's surface is small (eyes, lashes, buttons);
-6. a mesh skinned to at most :data:`RIGID_JOINTS` joints is a prop (a blade, a bag) following one bone;
+6. a mesh skinned to at most :data:`RIGID_JOINTS` joints is rigid (a blade, a bag, a helmet) following one bone;
 7. any other mesh is body (large, skinned to many joints, neither inside nor over the body).
 
 Lengths are at a 1.80 m character, scaled to the character's height. Inside/outside uses the nearest welded
@@ -140,7 +140,7 @@ def _decide(body: _Body, surface: _Surface, joints: int, scale: float) -> tuple[
     if share_area < SMALL_AREA_SHARE:
         return "accessory", f"small: {100 * share_area:.1f}% of the surface of {body_name}"
     if joints <= RIGID_JOINTS:
-        return "accessory", f"a prop skinned to {joints} joint{'s' if joints > 1 else ''}"
+        return "accessory", f"rigid: skinned to {joints} joint{'s' if joints > 1 else ''} (a prop or a rigid piece)"
     return (
         "body",
         f"large ({100 * share_area:.0f}% of the body's surface, {joints} joints), not inside or over the body",

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -281,14 +281,18 @@ def _unique_names(nodes: _Nodes, chosen: list[int]) -> list[str]:
     return out
 
 
-def _make_skeleton(nodes: _Nodes, joint_nodes: list[int], notes: list[str]) -> Skeleton:
-    """A baked skeleton of ``joint_nodes`` (sorted parent-before-child) from the rest node TRS."""
+def _make_skeleton(
+    nodes: _Nodes, joint_nodes: list[int], notes: list[str], attach: dict[int, int] | None = None
+) -> Skeleton:
+    """A baked skeleton of ``joint_nodes`` (sorted parent-before-child) from the rest node TRS. ``attach``: joint
+    node -> the joint node it hangs from instead of its nearest joint ancestor (see :func:`_detached_parents`)."""
     chosen = set(joint_nodes)
     parents = []
     for node in joint_nodes:
         p = nodes.parents[node]
         while p >= 0 and p not in chosen:
             p = nodes.parents[p]
+        p = (attach or {}).get(node, p)
         parents.append(joint_nodes.index(p) if p >= 0 else -1)
     world = _world(nodes, _with_ancestors(nodes, chosen), nodes.t[None], nodes.q[None], nodes.s[None])
     quat, pos = _bake(np.stack([world[n][0] for n in joint_nodes]), notes, "rest pose")
@@ -296,6 +300,34 @@ def _make_skeleton(nodes: _Nodes, joint_nodes: list[int], notes: list[str]) -> S
         parents, torch.as_tensor(quat, dtype=torch.float64), torch.as_tensor(pos, dtype=torch.float64)
     )
     return Skeleton(_unique_names(nodes, joint_nodes), parents, trans.float(), rot.float())
+
+
+def _skeleton_nodes(nodes: _Nodes, skins: list[_Skin], animated: set[int], notes: list[str]) -> list[int]:
+    """The nodes that become joints, parent-before-child: every skin joint and the nodes between two of them;
+    without a skin, the animated nodes, their ancestors and their descendants."""
+    if skins:
+        joints = set().union(*(s.joints for s in skins))
+        chosen = set(joints)
+        no_joint_above: set[int] = set()  # nodes with no joint among their ancestors (walks stop there)
+        for j in joints:
+            path_up: list[int] = []
+            p = nodes.parents[j]
+            while p >= 0 and p not in no_joint_above:
+                if p in joints:
+                    chosen.update(path_up)
+                    break
+                path_up.append(p)
+                p = nodes.parents[p]
+            else:
+                no_joint_above.update(path_up)
+        if len(skins) > 1:
+            notes.append(f"{len(skins)} skins merged into one skeleton (union of their joints)")
+    else:
+        chosen = nodes.with_ancestors(animated)
+        for n in nodes.order:  # descendants: parent-before-child order makes one pass enough
+            if nodes.parents[n] in chosen:
+                chosen.add(n)
+    return sorted(chosen, key=nodes.rank.__getitem__)
 
 
 # ----- skins and meshes ----------------------------------------------------------------------------------------------
@@ -614,7 +646,8 @@ def _build_character(
         _add_mesh_node(data, binding, rest_world, node_to_joint, parts, notes)
         if parts.num_vertices > span_start[0]:  # one span per mesh node, for the mesh roles (mesh_roles.py)
             any_skinned = any_skinned or binding.skin is not None
-            label = str(binding.mesh.get("name") or nodes.names[n] or f"mesh {binding.mesh_index}")
+            # the node's name first: it names the instance (Witch_Body), the mesh its data (Cube.040)
+            label = str(nodes.names[n] or binding.mesh.get("name") or f"mesh {binding.mesh_index}")
             spans.append(MeshSpan(label, span_start[0], parts.num_vertices - span_start[0], span_start[1],
                                   parts.num_faces - span_start[1]))  # fmt: skip
     if not any_skinned:
@@ -677,6 +710,70 @@ def _read_material(data: GltfData, index: int | None, notes: list[str]) -> Mater
         metallic=min(max(metallic, 0.0), 1.0),
         roughness=min(max(rough, 0.0), 1.0),
     )
+
+
+# ----- joints detached from the body (IK layouts) ----------------------------------------------------------------
+IK_REACH = 1.5
+"""A detached joint is attached to a leaf of the body at most this many times the leaf's own bone length away."""
+IK_ALIGN = 0.5
+"""... and in the direction the leaf's bone points (cosine at least this): the detached joint continues it."""
+
+
+def _detached_parents(character: Character) -> dict[int, int]:
+    """Joint -> new parent joint for the deforming joints that hang beside the body from a non-deforming rig root
+    (Blender IK layouts, e.g. Quaternius: ``Foot.L`` parented to ``Root``, not to ``LowerLeg.L``): each goes
+    below the body's leaf joint whose bone it continues (nearest, within :data:`IK_REACH`, along
+    :data:`IK_ALIGN`). The body is the deforming subtree with the most deforming joints; a joint deforms when
+    some vertex is weighted to it."""
+    sk = character.skeleton
+    deforming = set(torch.unique(character.skin_joints[character.skin_weights > 0]).tolist())
+    above = {j: set(sk.ancestors(j)) for j in deforming}
+    tops = [j for j in sorted(deforming) if not above[j] & deforming]
+    if len(tops) < 2:
+        return {}
+    body = max(tops, key=lambda t: (sum(t == j or t in above[j] for j in deforming), -t))
+    has_child = {sk.parents[j] for j in deforming}
+    leaves = [j for j in deforming if body in above[j] and j not in has_child]
+    pos = sk.rest_global()[1].double()
+    out: dict[int, int] = {}
+    for t in tops:
+        reach = []
+        for leaf in leaves if t != body else []:
+            bone, gap = pos[leaf] - pos[sk.parents[leaf]], pos[t] - pos[leaf]
+            length, dist = float(bone.norm()), float(gap.norm())
+            if length > 1e-9 and dist <= IK_REACH * length and float(bone @ gap) >= IK_ALIGN * length * dist:
+                reach.append((dist, leaf))
+        if reach:
+            out[t] = min(reach)[1]
+    return out
+
+
+def _reattached(
+    nodes: _Nodes, skeleton_nodes: list[int], character: Character, attach: dict[int, int], notes: list[str]
+) -> tuple[list[int], Character]:
+    """The skeleton nodes in their new parent-before-child order and ``character`` on the skeleton whose joints
+    ``attach`` (joint -> new parent joint) re-parents; skin indices follow the new order."""
+    sk = character.skeleton
+    parents = [attach.get(j, p) for j, p in enumerate(sk.parents)]
+    children: list[list[int]] = [[] for _ in parents]
+    for j, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(j)
+    order: list[int] = []
+    stack = [j for j, p in enumerate(parents) if p < 0][::-1]
+    while stack:
+        j = stack.pop()
+        order.append(j)
+        stack.extend(children[j][::-1])
+    new_nodes = [skeleton_nodes[j] for j in order]
+    by_node = {skeleton_nodes[j]: skeleton_nodes[p] for j, p in attach.items()}
+    skeleton = _make_skeleton(nodes, new_nodes, notes, by_node)
+    new_index = torch.empty(len(order), dtype=torch.long)
+    new_index[torch.tensor(order)] = torch.arange(len(order))
+    for j, p in sorted(attach.items()):
+        notes.append(f"joint {sk.names[j]!r} hangs beside the body from a rig root (an IK layout): attached below "
+                     f"{sk.names[p]!r}, whose bone it continues")  # fmt: skip
+    return new_nodes, replace(character, skeleton=skeleton, skin_joints=new_index[character.skin_joints])
 
 
 # ----- animations ----------------------------------------------------------------------------------------------------
@@ -876,30 +973,8 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
     skins = _read_skins(data, len(nodes.parents))
     animations = [_read_animation(data, a, len(nodes.parents), notes) for a in range(len(data.array("animations")))]
 
-    if skins:
-        joints = set().union(*(s.joints for s in skins))
-        chosen = set(joints)
-        no_joint_above: set[int] = set()  # nodes with no joint among their ancestors (walks stop there)
-        for j in joints:
-            path_up: list[int] = []
-            p = nodes.parents[j]
-            while p >= 0 and p not in no_joint_above:
-                if p in joints:
-                    chosen.update(path_up)
-                    break
-                path_up.append(p)
-                p = nodes.parents[p]
-            else:
-                no_joint_above.update(path_up)
-        if len(skins) > 1:
-            notes.append(f"{len(skins)} skins merged into one skeleton (union of their joints)")
-    else:
-        animated = {ch.node for _, chans in animations for ch in chans}
-        chosen = nodes.with_ancestors(animated)
-        for n in nodes.order:  # descendants: parent-before-child order makes one pass enough
-            if nodes.parents[n] in chosen:
-                chosen.add(n)
-    skeleton_nodes = sorted(chosen, key=nodes.rank.__getitem__)
+    animated = {ch.node for _, chans in animations for ch in chans}
+    skeleton_nodes = _skeleton_nodes(nodes, skins, animated, notes)
     if len(skeleton_nodes) > settings.max_joints:
         raise LimitExceededError(
             f"{len(skeleton_nodes)} joints, over the limit of {settings.max_joints} (max_joints)", data.label
@@ -917,6 +992,9 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
         character = _build_character(data, nodes, skins, skeleton_nodes, skeleton, path.stem, notes)
         if character is None:
             notes.append("the skins are used by no mesh: no character")
+        elif attach := _detached_parents(character):
+            skeleton_nodes, character = _reattached(nodes, skeleton_nodes, character, attach, notes)
+            skeleton = character.skeleton
     elif data.array("meshes"):
         notes.append(
             f"{path.name} has no skin: its meshes are not a character (a target character must be a skinned mesh)"
