@@ -1,5 +1,5 @@
 """A realistic :class:`RefineContext` without the pipeline: source on its body, copy placed on the floor,
-source contacts, the target's parts and SDFs. Used by the refinement tests and benchmarks."""
+source contacts, the target's parts and SDFs. Used by the refinement tests (benchmarks use retarget_core.cases)."""
 
 from __future__ import annotations
 
