@@ -52,8 +52,11 @@ CRYPTOVOXELS = Rig(
     "cryptovoxels.vrm",
     _fingers(
         {"Thumb1": "Thumb0_{s}", "Thumb2": "Thumb1_{s}", "Thumb3": "Thumb2_{s}"}
-        | {f"{f}{k}": f"{n}Finger{k}_{{s}}" for f, n in (("Index", "Index"), ("Middle", "Middle"),
-                                                          ("Ring", "Ring"), ("Pinky", "Little")) for k in (1, 2, 3)},
+        | {
+            f"{f}{k}": f"{n}Finger{k}_{{s}}"
+            for f, n in (("Index", "Index"), ("Middle", "Middle"), ("Ring", "Ring"), ("Pinky", "Little"))
+            for k in (1, 2, 3)
+        },
         {"Left": "L", "Right": "R"},
     ),  # fmt: skip
     {"Body": "body"},
@@ -170,3 +173,111 @@ def _turn(local: torch.Tensor) -> torch.Tensor:
     """``(F,)`` degrees each frame's local rotation ``(F, 4)`` has turned since frame 0."""
     d = rot.mul(local, rot.inv(local[:1].expand_as(local)))
     return torch.rad2deg(2 * torch.atan2(d[..., :3].norm(dim=-1), d[..., 3].abs()))
+
+
+# ----- the conventions of these rigs on constructed cases (no shared data needed) -------------------------------------
+CATS = """
+Hips 0 100 0
+  {Side} leg 9 -5 0
+    {Side} knee 0 -45 0
+      {Side} ankle 0 -42 0
+        {Side} toe 0 -5 12
+  Spine 0 10 0
+    Chest 0 20 0
+      Neck 0 25 0
+        Head 0 10 0
+      {Side} shoulder 4 20 0
+        {Side} arm 10 0 0
+          {Side} elbow 27 0 0
+            {Side} wrist 25 0 0
+              Thumb0_{S} 3 -1 3
+                Thumb1_{S} 3 0 1
+                  Thumb2_{S} 2 0 1
+              IndexFinger1_{S} 9 0 2
+                IndexFinger2_{S} 4 0 0
+                  IndexFinger3_{S} 3 0 0
+"""
+
+
+def test_vrm_humanoid_map_holds_the_body_and_names_fill_the_fingers_it_lacks() -> None:
+    """As in cryptovoxels.vrm: MMD/Cats names ('Left leg' is the thigh) that the names alone misread, a VRM 0.x
+    bone map that names the legs and the first two index joints but no thumb: the map holds the body joints
+    (method 'vrm'), the names add the thumbs and the distal index joint, and a warning says so."""
+    from retarget_core.mapping import map_joints
+    from tests.core.test_mapping import rig
+
+    sk = rig(CATS)
+    body = {"Hips": "Hips", "Spine": "Spine", "Neck": "Neck", "Head": "Head"}
+    for side in ("Left", "Right"):
+        for canonical, joint in (
+            ("UpLeg", "leg"),
+            ("Leg", "knee"),
+            ("Foot", "ankle"),
+            ("ToeBase", "toe"),
+            ("Shoulder", "shoulder"),
+            ("Arm", "arm"),
+            ("ForeArm", "elbow"),
+            ("Hand", "wrist"),
+        ):
+            body[side + canonical] = f"{side} {joint}"
+    vrm = body | {f"{side}HandIndex{k}": f"IndexFinger{k}_{side[0]}" for side in ("Left", "Right") for k in (1, 2)}
+    mapping = map_joints(sk, vrm=vrm)
+    assert {c: sk.names[j] for c, j in mapping.joints.items() if c in body} == body
+    assert {mapping.method[c] for c in body} == {"vrm"}
+    expected = {}
+    for side in ("Left", "Right"):
+        for k in (1, 2, 3):
+            expected[f"{side}HandThumb{k}"] = f"Thumb{k - 1}_{side[0]}"
+            expected[f"{side}HandIndex{k}"] = f"IndexFinger{k}_{side[0]}"
+    assert {e: sk.names[j] for e, j in mapping.extras.items()} == expected
+    assert mapping.extra_method["LeftHandIndex1"] == "vrm" and mapping.extra_method["LeftHandThumb1"] == "name"
+    assert any("VRM humanoid map has no" in w and "LeftHandIndex3" in w for w in mapping.warnings)
+    assert map_joints(sk, {"LeftUpLeg": "Left leg"}, vrm=vrm).method["LeftUpLeg"] == "override"  # the user's wins
+
+
+def _ik_layout_glb(path: Path) -> Path:
+    """A Quaternius-style rig: Root -> Body -> (Spine -> Head, UpperLeg.L -> LowerLeg.L), and Foot.L and the pole
+    target PT.L parented to Root; the skin weights Body..Head, the leg and Foot.L (not Root, not PT.L)."""
+    import numpy as np
+
+    from tests.core.gltf_builders import USHORT, Builder, trs_matrix, tube_around
+
+    b = Builder()
+    root = b.node("Root", parent=b.node("CharacterArmature"))
+    body = b.node("Body", parent=root, translation=(0, 1.0, 0))
+    spine = b.node("Spine", parent=body, translation=(0, 0.2, 0))
+    head = b.node("Head", parent=spine, translation=(0, 0.5, 0))
+    thigh = b.node("UpperLeg.L", parent=body, translation=(0.1, 0, 0))
+    shin = b.node("LowerLeg.L", parent=thigh, translation=(0, -0.45, 0))
+    foot = b.node("Foot.L", parent=root, translation=(0.1, 0.12, 0))
+    pole = b.node("PT.L", parent=root, translation=(0.1, 0.5, 0.5))
+    joints = [root, body, spine, head, thigh, shin, foot, pole]
+    world = {root: (0, 0, 0), body: (0, 1, 0), spine: (0, 1.2, 0), head: (0, 1.7, 0), thigh: (0.1, 1, 0),
+             shin: (0.1, 0.55, 0), foot: (0.1, 0.12, 0), pole: (0.1, 0.5, 0.5)}  # fmt: skip
+    ibm = np.stack([np.linalg.inv(trs_matrix(world[j])) for j in joints])
+    prims = []
+    for chain in ([head, spine, body], [thigh, shin, foot]):
+        tube = tube_around(np.array([world[j] for j in chain], dtype=float), 0.08)
+        skin_index = np.array([joints.index(j) for j in chain])[tube.joints[:, :2]]
+        attrs = {"POSITION": b.accessor(tube.positions.astype(np.float32)),
+                 "JOINTS_0": b.accessor(np.c_[skin_index, np.zeros((len(tube.joints), 2), int)], USHORT, kind="VEC4"),
+                 "WEIGHTS_0": b.accessor(tube.weights.astype(np.float32), kind="VEC4")}  # fmt: skip
+        prims.append({"attributes": attrs, "indices": b.accessor(tube.faces.reshape(-1).astype(np.uint32), 5125)})
+    b.node("Witch_Body", mesh=b.mesh(prims), skin=b.skin(joints, ibm))
+    return b.save_glb(path)
+
+
+def test_ik_layout_feet_are_attached_below_their_shins(tmp_path: Path) -> None:
+    contents = read_gltf(_ik_layout_glb(tmp_path / "ik.glb"))
+    c = contents.character
+    assert c is not None
+    sk = c.skeleton
+    parent = {n: sk.names[p] if p >= 0 else None for n, p in zip(sk.names, sk.parents, strict=True)}
+    assert parent["Foot.L"] == "LowerLeg.L" and parent["PT.L"] == "Root"  # the unweighted pole target stays
+    assert any("'Foot.L' hangs beside the body" in n for n in contents.notes)
+    pos = sk.rest_global()[1]
+    assert torch.allclose(pos[sk.index("Foot.L")], torch.tensor([0.1, 0.12, 0.0]), atol=1e-5)
+    dominant = c.skin_joints.gather(1, c.skin_weights.argmax(1, keepdim=True))[:, 0]
+    low = c.vertices[:, 1] < 0.13  # the tube's last ring, at the ankle
+    assert {sk.names[j] for j in dominant[low].tolist()} == {"Foot.L"}
+    assert {m.name for m in c.meshes} == {"Witch_Body"}
