@@ -161,8 +161,8 @@ def _print_info(info: dict[str, Any]) -> None:
         )
     else:
         out.print(f"vertices {info['vertices']}, triangles {info['triangles']}, height {info['height_m']:.3f} m")
-        for m in info.get("meshes", []):  # the role decided per mesh (docs/meshes.md)
-            out.print(f"mesh {m['name']}: {m['role']} ({m['reason']}), {m['vertices']} vertices")
+    for m in info.get("meshes", []):  # the role decided per mesh (docs/meshes.md), a motion file's own mesh too
+        out.print(f"mesh {m['name']}: {m['role']} ({m['reason']}), {m['vertices']} vertices")
     norm = info["normalization"]
     out.print(f"units {norm['unit']} (x{norm['scale']:g}), up axis {norm['up_axis']}, rest pose: {norm['rest_pose']}")
     table = Table(title="joint mapping")

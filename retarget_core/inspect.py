@@ -24,6 +24,7 @@ def inspect_file(path: str | Path, kind: Literal["character", "motion"]) -> dict
             "duration_s": round(m.duration, 4),
             "clips": lm.clips,
             "has_mesh": lm.source_character is not None,
+            "meshes": [m.as_dict() for m in lm.source_character.character.meshes] if lm.source_character else [],
             "mapping": lm.mapping.report(m.skeleton.names),
             "normalization": lm.normalization.as_dict(),
             "warnings": lm.notes + lm.mapping.warnings,

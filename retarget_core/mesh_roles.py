@@ -140,7 +140,7 @@ def _decide(body: _Body, surface: _Surface, joints: int, scale: float) -> tuple[
     if share_area < SMALL_AREA_SHARE:
         return "accessory", f"small: {100 * share_area:.1f}% of the surface of {body_name}"
     if joints <= RIGID_JOINTS:
-        return "accessory", f"rigid: skinned to {joints} joint{'s' if joints > 1 else ''} (a prop or a rigid piece)"
+        return "accessory", f"rigid: skinned to {joints} joint{'s' if joints > 1 else ''}, a prop or a rigid piece"
     return (
         "body",
         f"large ({100 * share_area:.0f}% of the body's surface, {joints} joints), not inside or over the body",
