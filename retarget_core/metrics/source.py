@@ -1,4 +1,4 @@
-"""What came in broken: the source motion measured on its own body (issue 8, part 6).
+"""What came in broken: the source motion measured on its own body.
 
 A capture can sink a hand into the belly, slide a planted foot, stand below the floor, hover above it, or
 jitter. Retargeting copies all of that onto the target, and a reviewer comparing "before" and "after" would
@@ -31,19 +31,17 @@ FOOT_SEGMENTS: tuple[str, ...] = ("LeftFoot", "LeftToeBase", "RightFoot", "Right
 
 @dataclass(frozen=True)
 class SourceThresholds:
-    """When a source figure becomes a warning (lengths at a 1.80 m body, per frame at 30 fps)."""
+    """When a source figure becomes a warning (lengths at a 1.80 m body, per frame at 30 fps). Why each value,
+    and what it flags on the shared clips: docs/metrics.md, "``source``: what came in broken"."""
 
-    # A hand deeper than 1 cm inside another part is visibly sunk (skin pressed 1 cm in by a resting hand is
-    # about the most a soft belly gives); on more than 10 % of frames it is a habit of the capture, not a graze.
+    # A hand deeper than 1 cm inside another part is visibly sunk (about the most a soft belly gives under a
+    # resting hand); on more than 10 % of frames it is a habit of the capture, not a graze.
     hand_depth_m: float = 0.01
     hand_frames_percent: float = 10.0
-    # A planted foot (the source's own foot contacts) moving more than 1 cm a frame on average skates; the
-    # acceptance target for results is 0.5 cm, the 58 CMU clips skate 0.15 to 0.48 cm.
+    # A planted foot (the source's own foot contacts) moving more than 1 cm a frame on average skates.
     skate_m: float = 0.01
     # A foot flat on the floor (toe and ankle within foot_down_m of their standing heights) sliding more than
-    # 1 cm a frame on more than 20 % of its floor frames is a skating capture; a clean walk's heel strikes and
-    # toe-offs slide on fewer (median 3 % on the shared clips, 4 of 58 over 20 %; 1 mm / 0.3 degree of noise:
-    # 44 % or more; benchmarks/diag/results/source_calibration.json).
+    # 1 cm a frame on more than 20 % of its floor frames is a skating capture (a clean walk slides on fewer).
     foot_down_m: float = 0.03
     slide_m: float = 0.01
     slide_frames_percent: float = 20.0
@@ -55,10 +53,7 @@ class SourceThresholds:
     float_m: float = 0.02
     # Jitter: mean joint jerk (third difference of positions at 30 fps) above 1.5 cm/frame^3 AND out of
     # proportion to the motion, jerk / acceleration above 1.5 (white noise gives sqrt(20 / 6) = 1.83, smooth
-    # motion less). On the 58 shared clips (benchmarks/diag/results/source_calibration_jitter.json) clean captures
-    # give 0.4 to 4.9 cm/frame^3 (the fast ones, ratio about 1.0) and ratios 0.94 to 1.62 (slow ones, small
-    # jerk): 1 clip flagged; with 1 mm / 0.3 degree noise added, 2.5 to 6.8 with ratios 1.20 to 1.82: 44 of 58
-    # flagged (3 mm / 1 degree: 54). Either test alone overlaps.
+    # motion less); either test alone overlaps clean captures.
     jerk_m: float = 0.015
     jerk_ratio: float = 1.5
 
