@@ -41,9 +41,8 @@ from retarget_core.metrics.source import measure_source
 from retarget_core.motion import Motion
 
 MEASURE_THREADS = 1
-"""Torch intra-op threads while measuring. The queries are many small tensor operations; on a small, shared
-CPU (2 cores, other processes running) OpenMP's parallel regions cost more than they save: a 300-frame job
-took 22 s with torch's default 2 threads and 5 s with 1 (benchmarks/bench/results/metrics_benchmark*.json)."""
+"""Torch intra-op threads while measuring: the queries are many small tensor operations, and on a small, shared
+CPU OpenMP's parallel regions cost more than they save (``benchmarks/bench/metrics_benchmark.py --threads N``)."""
 
 
 @contextmanager

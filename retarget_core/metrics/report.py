@@ -134,7 +134,7 @@ class SourceContacts(BaseModel):
     vertex_pairs: ContactVertexPairs | None = None
 
 
-# --- the source measured on its own body (issue 8, part 6; computed by metrics/source.py) --------------------
+# --- the source measured on its own body (computed by metrics/source.py) -------------------------------------
 
 
 class SourceFlag(BaseModel):
