@@ -53,7 +53,7 @@ def write_lock(url: str) -> AbstractContextManager[Any]:
     """For SQLite, a lock the writing threads of this process take in turn around a commit; a no-op elsewhere.
 
     SQLite has one write lock per file, and a thread that finds it taken sleeps in SQLite's busy handler in
-    growing steps (up to 100 ms each), so under many concurrent writers the unlucky ones waited seconds. Taking
+    growing steps (up to 100 ms each), so under many concurrent writers the unlucky ones wait seconds. Taking
     turns in the process leaves SQLite's handler only the other processes to wait for."""
     if not normalise_database_url(url).startswith("sqlite"):
         return nullcontext()

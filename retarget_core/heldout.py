@@ -2,7 +2,7 @@
 
 ``retarget_core/data/heldout.json`` lists the clips (file stems of ``../shared/data/motions/cmu``, with why each
 was chosen), the held-out bodies (MakeHuman parameters, built with :func:`retarget_core.bodies.makehuman.make_body`)
-and which shared character files are held out. Rules for training (issue 8):
+and which shared character files are held out. Rules for training:
 
 - exclude every held-out clip (:func:`is_heldout_clip`);
 - never use the held-out bodies' parameter values, and sample training bodies away from them:
@@ -34,7 +34,7 @@ DEFAULT_CACHE = Path.home() / ".cache" / "retarget" / "heldout"
 # 0.25 m.
 AGE_SCALE_Y = 40.0
 HEIGHT_SCALE_M = 0.25
-EXCLUSION_RADIUS = 0.3  # 0.3 of a macro range, 12 years or 7.5 cm; rejects 0.4 % of the sampler's draws
+EXCLUSION_RADIUS = 0.3  # 0.3 of a macro range, 12 years or 7.5 cm
 MAX_REJECTIONS = 1000
 
 

@@ -146,7 +146,7 @@ def base_mesh() -> BaseMesh:
 def load_target(relative_path: str) -> tuple[np.ndarray, np.ndarray] | None:
     """A shape target: vertex indices ``(K,)`` and offsets ``(K, 3)`` in MakeHuman units, or None when the
     file does not exist. ``relative_path`` is relative to the asset folder, without ``.target.gz``.
-    Parsed targets are kept in a bounded cache (one body needs up to about 60 of them, 5 ms each to parse)."""
+    Parsed targets are kept in a bounded cache (one body needs up to about 60 of them)."""
     path = asset_dir() / f"{relative_path}.target.gz"
     if not path.is_file():
         return None

@@ -39,8 +39,8 @@ log = logging.getLogger(__name__)
 
 HELD_OUT_CLIPS: tuple[str, ...] = ("002_03", "005_10", "006_08", "007_05")
 """Clips kept out of training besides the fixed held-out split (``retarget_core/data/heldout.json``, see
-:mod:`retarget_core.heldout`): the four that ``benchmarks/eval/recurrent_eval.py`` evaluates on, held out before the
-split existed. The shared ``mh_*`` bodies are held out too: training bodies are generated
+:mod:`retarget_core.heldout`): the four that ``benchmarks/eval/recurrent_eval.py`` evaluates on. The shared
+``mh_*`` bodies are held out too: training bodies are generated
 (:func:`retarget_core.heldout.sample_training_body_params`)."""
 TRAIN_FPS = 30.0
 MAX_CLIP_FRAMES = 600  # 20 s per clip at most: long clips would dominate the windows drawn

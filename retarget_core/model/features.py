@@ -17,8 +17,8 @@ weight summed per canonical joint (22) (:func:`geometry_points`).
 
 Outputs: a residual rotation per canonical joint in 6D (zero = identity), applied in the joint's rest world
 frame on top of the copy's local rotation, and a root offset (heading frame, in heights) added to the copy's
-root; the root-velocity term of the energy keeps its changes smooth. (An integrated velocity residual, the
-paper's choice, drifted by decimetres over a clip in our first runs.) A zero output gives the copy exactly.
+root; the root-velocity term of the energy keeps its changes smooth. (Not the paper's integrated velocity
+residual: it drifts over a clip, docs/model-recurrent.md.) A zero output gives the copy exactly.
 """
 
 from __future__ import annotations

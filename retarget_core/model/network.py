@@ -7,7 +7,7 @@
     [h_enc, e] -> decoder GRU (L x H) -> linear heads: residual rotations (B, F, 22, 6), root offset (B, F, 3)
 
 Differences from the paper: 2 x 128 units instead of 2 x 512 (about 16x fewer recurrent weights: 0.5 M
-parameters, 2 MB; inference well under 1 ms per frame on one CPU core), and the decoder is not autoregressive
+parameters, 2 MB; its speed in docs/model-recurrent.md), and the decoder is not autoregressive
 (it does not read its own previous output: the whole clip runs as one GRU call, and ESO can optimise the
 encoder states of every frame at once). The heads are zero-initialised, so an untrained network outputs the
 copy baseline exactly (see :func:`retarget_core.model.features.apply_residual`).

@@ -67,8 +67,7 @@ class CollisionTrainConfig:
     pad_range_m: tuple[float, float] = (-0.015, 0.025)  # at 1.80 m (paper: up to 0.1 shoulder heights)
     slack_m: float = 0.06  # triples taken within this of a segment on the input (covers padding and the move)
     w_identity: float = 10.0
-    w_penetration: float = 2.0  # paper 0.5: with it the model stayed conservative (M_c -31 % on the held-out subset vs
-    # -45 % at 2.0, and the optimiser after it 0.121 vs 0.054 pen %v; docs/model-collisions.md)
+    w_penetration: float = 2.0  # paper 0.5 leaves the model too conservative (docs/model-collisions.md)
     w_reconstruction: float = 0.3
     w_l2: float = 1e-6  # paper 1e-5; our losses are in shoulder heights (small): 1e-5 made it a fifth of the loss
     network: CollisionNetConfig = field(default_factory=CollisionNetConfig)

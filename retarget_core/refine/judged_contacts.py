@@ -3,9 +3,8 @@ source), as contact instances of the target for the collision stage.
 
 Why: the contact detector (:mod:`retarget_core.contacts`) finds the contacts a person would call contacts and
 carries them to the target as vertex pairs; the judge also counts a hand that merely passes within 1.5 cm of a
-part and loses it when the result's hand ends farther than 2.5 cm. Pushing an arm out of a thigh moved a hand
-resting 0.5-1.4 cm from the belly 3 cm away from it (skinny 005_17: contact preservation 0.92 -> 0.80, measured).
-These instances are only held near their part (within ``hold_m``), not pulled onto it.
+part and loses it when the result's hand ends farther than 2.5 cm, and pushing an arm out of a thigh can carry
+a hand that rests near the belly that far from it. These instances are only held near their part (within ``hold_m``), not pulled onto it.
 """
 
 from __future__ import annotations
@@ -47,8 +46,8 @@ def _nearer_leg(ctx: RefineContext, gpos: Tensor, hand_joint: int) -> Tensor:
 
 def source_hand_distances(ctx: RefineContext) -> HandPartDistances:
     """The source's hand-to-part distances ``(F, 2, P)`` on its own body: the contact detector's
-    (``ctx.self_contacts.distances``, the same definition as the judge's hand distances: on the held-out contact
-    clips both mark the same frames within 1.5 cm, measured), measured here when the context has none."""
+    (``ctx.self_contacts.distances``, the same definition as the judge's hand distances), measured here when the
+    context has none."""
     found = ctx.self_contacts.distances
     if found is not None and found.num_frames == ctx.source_view.num_frames:
         return found
