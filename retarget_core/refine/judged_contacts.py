@@ -4,7 +4,8 @@ source), as contact instances of the target for the collision stage.
 Why: the contact detector (:mod:`retarget_core.contacts`) finds the contacts a person would call contacts and
 carries them to the target as vertex pairs; the judge also counts a hand that merely passes within 1.5 cm of a
 part and loses it when the result's hand ends farther than 2.5 cm, and pushing an arm out of a thigh can carry
-a hand that rests near the belly that far from it. These instances are only held near their part (within ``hold_m``), not pulled onto it.
+a hand that rests near the belly that far from it. These instances are only held near their part (within
+``hold_m``), not pulled onto it.
 """
 
 from __future__ import annotations
