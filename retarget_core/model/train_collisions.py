@@ -69,7 +69,7 @@ class CollisionTrainConfig:
     w_identity: float = 10.0
     w_penetration: float = 2.0  # paper 0.5 leaves the model too conservative (docs/model-collisions.md)
     w_reconstruction: float = 0.3
-    w_l2: float = 1e-6  # paper 1e-5; our losses are in shoulder heights (small): 1e-5 made it a fifth of the loss
+    w_l2: float = 1e-6  # paper 1e-5, too heavy against our losses in shoulder heights (small)
     network: CollisionNetConfig = field(default_factory=CollisionNetConfig)
 
 
