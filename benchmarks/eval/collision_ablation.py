@@ -41,17 +41,15 @@ VARIANTS: dict[str, collisions.CollisionParams] = {
     "default": D,
     "repair_rounds=0": replace(D, repair_rounds=0),
     "finish_iterations=0": replace(D, finish_iterations=0),
-    "fallback_smooth=0": replace(D, fallback_smooth=0),
     "use_mesh=False": replace(D, use_mesh=False),
     "judged_pairs_only=False": replace(D, judged_pairs_only=False),
-    "hold_head_in_torso=False": replace(D, hold_head_in_torso=False),
     "judged_contacts=False": replace(D, judged_contacts=False),
     "w_ground=0": replace(D, w_ground=0.0),
     "w_pair=0": replace(D, w_pair=0.0),
     "contact_ee_weight=0.5": replace(D, contact_ee_weight=0.5),
     "planted_foot_ee_weight=0.5": replace(D, planted_foot_ee_weight=0.5),
     "ee_source_pull=0": replace(D, ee_source_pull={k: 0.0 for k in D.ee_source_pull}),
-    "fallback_smooth=0,hold_head_in_torso=False": replace(D, fallback_smooth=0, hold_head_in_torso=False),
+    "w_smooth=0": replace(D, w_smooth=0.0),
 }
 """Each setting off, or at the neutral value (the other end effectors' weight, no pull)."""
 

@@ -64,14 +64,13 @@ class TripleSet:
 def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Tensor, frames: Tensor,
                       exempt: Tensor, allowed: Tensor, slack: float | Tensor, clearance: float,
                       contact_tolerance: float, only_penetrating: bool = False,
-                      contact_weight: float = 1.0, hold: Tensor | None = None) -> TripleSet:  # fmt: skip
+                      contact_weight: float = 1.0) -> TripleSet:  # fmt: skip
     """Triples for point vertices ``points (P,)`` posed ``(Fa, P, 3)`` with segment transforms ``(Fa, S, 3, 4)``
     at clip frames ``frames (Fa,)``: every allowed segment whose grid box, grown by ``slack``, holds the point
     and whose distance is below ``slack`` (m, or ``(P,)`` per point). ``exempt (F, S, 6)``: segment-of-point x cluster pairs in contact
     per clip frame (their tolerance is ``contact_tolerance``, their weight times ``contact_weight``: the hand is
     brought to the surface by the contact term, the sunk part only nudged out). ``only_penetrating``: keep
-    depths > 0 only. ``hold (C, C)`` bool, point cluster x segment cluster (:data:`CLUSTERS`): pairs kept no
-    deeper than on the given pose instead of pushed out (tolerance: the depth there, at least ``-clearance``)."""
+    depths > 0 only."""
     parts = sdf.parts
     part = parts.vertex_part.index_select(0, points)  # (P,)
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
@@ -104,9 +103,6 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
                 continue
             ex = exempt[frames[f_i], part[pt], cluster[j]]
             tol = torch.where(ex, torch.full_like(rest, contact_tolerance), torch.full_like(rest, -clearance))
-            if hold is not None and bool(hold[cluster[part[pt]], cluster[j]].any()):
-                held = hold[cluster[part[pt]], cluster[j]]
-                tol = torch.where(held, torch.maximum(tol, -d[keep] - rest), tol)
             weight = sdf.geodesic_weight[points[pt], j] * torch.where(ex, contact_weight, 1.0)
             groups.append((j, f_i, pt, tol, weight, rest))
     return TripleSet(groups)

@@ -155,7 +155,7 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
                             allowed=allowed)  # fmt: skip
 
     fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
-                                at_fps(p.fallback_ramp, motion.fps), smooth=0)  # fmt: skip
+                                at_fps(p.fallback_ramp, motion.fps))  # fmt: skip
     guard = run_never_worse(NeverWorse.start(before, contacts), check_set, measure, p, scale, fallback)
     final, weight = guard.final, guard.weight
     resid = resid * weight[:, None, None]

@@ -50,7 +50,6 @@ class CollisionParams:
     fallback_ramp: int = 8  # frames over which a worse span blends back to the input
     fallback_rounds: int = 4  # rounds of the never-worse fallback
     repair_rounds: int = 2  # before falling back, vertices that went deeper join and the finishing steps rerun
-    fallback_smooth: int = 1  # frames of erosion and smoothing of the fallback weights: no kink (jerk)
     fallback_factor: float = 0.5  # a worse frame's residual is halved per round ...
     fallback_floor: float = 0.2  # ... and dropped once below this fraction
     finish_lr_fraction: float = 0.3  # the finishing pass starts from a converged pose: smaller steps
@@ -63,7 +62,6 @@ class CollisionParams:
     w_mesh: float = 5.0  # an arm vertex inside the posed torso or head mesh (the rigid SDFs miss the armpit)
     mesh_near_m: float = 0.01  # arm vertices this close outside the posed torso are kept out too
     judged_pairs_only: bool = True  # resolve only the pairs the judge tests (no torso vertices)
-    hold_head_in_torso: bool = True  # a chin in a thick chest is held at the input's depth, not pushed out
     use_mesh: bool = True  # test arms against the posed torso mesh
     w_ground: float = 20.0  # a hand or foot point below the floor
     ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell

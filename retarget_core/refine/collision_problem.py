@@ -155,13 +155,5 @@ def ee_weights(ctx: RefineContext, contacts: ContactInstances, frames: Tensor, n
     return w
 
 
-def hold_table(params: CollisionParams) -> Tensor:
-    """``(C, C)`` bool, point cluster x segment cluster: pairs held at the input's depth (not pushed out)."""
-    hold = torch.zeros(len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
-    if params.hold_head_in_torso:
-        hold[CLUSTERS.index("head"), CLUSTERS.index("torso")] = True
-    return hold
 
-
-
-__all__ = ["GROUND_SEGMENTS", "Ground", "Problem", "active_frames", "ee_targets", "ee_weights", "exempt_table", "ground_points", "hold_table"]
+__all__ = ["GROUND_SEGMENTS", "Ground", "Problem", "active_frames", "ee_targets", "ee_weights", "exempt_table", "ground_points"]

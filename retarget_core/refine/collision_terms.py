@@ -23,7 +23,7 @@ from retarget_core.refine.collision_energy import (
 )
 from retarget_core.refine.collision_mesh import MeshPairs, MeshTerms
 from retarget_core.refine.collision_params import CollisionParams
-from retarget_core.refine.collision_problem import Ground, Problem, hold_table
+from retarget_core.refine.collision_problem import Ground, Problem
 
 
 @dataclass
@@ -96,7 +96,7 @@ def build_terms(ctx: RefineContext, prob: Problem, points: Tensor, contacts: Con
         sel_posed, sel_mats = (posed, seg_mats) if select_local is None else poser(select_local, prob.trans)[:2]
     triples = candidate_triples(ctx.sdf, points, sel_posed, sel_mats, prob.frames, exempt, allowed,
                                 slack, params.clearance_m / scale, params.contact_tolerance_m / scale,
-                                contact_weight=params.contact_penetration_weight, hold=hold_table(params))  # fmt: skip
+                                contact_weight=params.contact_penetration_weight)  # fmt: skip
     targets = contact_targets(ctx, contacts, prob.frames, points, hand_points)
     if targets.count:
         with torch.no_grad():

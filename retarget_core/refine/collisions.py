@@ -259,8 +259,7 @@ def never_worse_pass(s: Solve) -> Tensor:
     def measure(weight: Tensor, at: Tensor) -> FrameCheck:
         return s.measure(apply_residual(s.rot_in, s.joints, s.residual() * weight[:, None, None]), at)
 
-    fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor,
-                                at_fps(p.fallback_ramp, s.motion.fps), p.fallback_smooth)  # fmt: skip
+    fallback = FallbackSettings(p.fallback_rounds, p.fallback_factor, p.fallback_floor, at_fps(p.fallback_ramp, s.motion.fps))
     run_never_worse(s.guard, frames, measure, p, s.scale, fallback, lambda a, w: repair_round(s, a, w), p.repair_rounds)
     s.timings["check_after"] = time.process_time() - t
     return s.residual()

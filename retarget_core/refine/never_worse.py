@@ -16,19 +16,18 @@ import torch
 from torch import Tensor
 
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck, WorseLimits, worse_frames
-from retarget_core.refine.temporal import smooth_fallback_weights
+from retarget_core.refine.temporal import fallback_weights
 
 
 @dataclass(frozen=True)
 class FallbackSettings:
     """How a worse frame's change is withdrawn: scaled by ``factor`` per round, dropped below ``floor``, blended
-    over ``ramp`` frames (at the clip's rate) with ``smooth`` frames of erosion and smoothing; ``rounds`` rounds."""
+    over ``ramp`` frames (at the clip's rate); ``rounds`` rounds."""
 
     rounds: int
     factor: float
     floor: float
     ramp: int
-    smooth: int
 
 
 Measure = Callable[[Tensor, Tensor], FrameCheck]
@@ -74,7 +73,7 @@ class NeverWorse:
         still above zero (to measure again)."""
         scaled = self.weight[bad] * s.factor
         self.cap[bad] = torch.where(scaled < s.floor, torch.zeros_like(scaled), scaled)
-        new_w = torch.minimum(self.weight, smooth_fallback_weights(self.cap, s.ramp, s.smooth))
+        new_w = torch.minimum(self.weight, fallback_weights(self.cap, s.ramp))
         changed = torch.nonzero(new_w < self.weight - 1e-6).flatten()
         self.weight = new_w
         self.restore(changed[new_w[changed] == 0])

@@ -54,19 +54,4 @@ def fallback_weights(cap: Tensor, ramp: int) -> Tensor:
     return ramped.amin(dim=1)
 
 
-def smooth_fallback_weights(cap: Tensor, ramp: int, smooth: int = 3) -> Tensor:
-    """:func:`fallback_weights` without kinks: eroded (a minimum over ``smooth`` frames each side), then averaged
-    by a binomial kernel of the same half-width, so still at most ``cap (F,)`` on every frame. Where two ramps
-    meet, the plain minimum has a kink, a spike in the third difference (the judge's jerk)."""
-    w = fallback_weights(cap, ramp)
-    if smooth <= 0 or int((cap < 1.0).sum()) == 0:
-        return w
-    padded = torch.nn.functional.pad(w[None, None], (smooth, smooth), mode="replicate")
-    eroded = -torch.nn.functional.max_pool1d(-padded, 2 * smooth + 1, stride=1)
-    kernel = torch.tensor([math.comb(2 * smooth, k) for k in range(2 * smooth + 1)], dtype=w.dtype)
-    kernel = kernel / kernel.sum()
-    padded = torch.nn.functional.pad(eroded, (smooth, smooth), mode="replicate")
-    return torch.nn.functional.conv1d(padded, kernel[None, None])[0, 0].clamp(0.0, 1.0)
-
-
-__all__ = ["bspline_basis", "cubic_bspline", "fallback_weights", "knot_count", "smooth_fallback_weights", "smoothstep"]
+__all__ = ["bspline_basis", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep"]

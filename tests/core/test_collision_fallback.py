@@ -1,5 +1,5 @@
-"""The collision stage's never-worse machinery on small tensors: the smoothed fallback weights stay under their
-caps without kinks, and the repair step finds the vertices that went deeper than on the input."""
+"""The collision stage's never-worse machinery on small tensors: the repair step finds the vertices that went
+deeper than on the input."""
 
 from __future__ import annotations
 
@@ -8,34 +8,6 @@ import torch
 from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.collision_mesh import MeshPairs
 from retarget_core.refine.collisions import deepened_points, mesh_inside
-from retarget_core.refine.temporal import fallback_weights, smooth_fallback_weights
-
-
-def _caps() -> torch.Tensor:
-    cap = torch.ones(60)
-    cap[15], cap[18], cap[40] = 0.5, 0.0, 0.25  # two ramps that meet (a kink in their minimum) and one alone
-    return cap
-
-
-def test_smoothed_fallback_weights_stay_under_the_caps_and_the_plain_weights() -> None:
-    cap = _caps()
-    plain, smooth = fallback_weights(cap, 8), smooth_fallback_weights(cap, 8, 3)
-    assert bool((smooth <= plain + 1e-6).all())
-    assert bool((smooth[cap < 1] <= cap[cap < 1] + 1e-6).all())
-    assert float(smooth[0]) > 0.9 and float(smooth[-1]) > 0.9  # far from the caps the residual comes through
-
-
-def test_smoothed_fallback_weights_have_a_smaller_third_difference() -> None:
-    cap = _caps()
-    plain, smooth = fallback_weights(cap, 8), smooth_fallback_weights(cap, 8, 3)
-    jerk = lambda w: float(torch.diff(w, n=3).abs().max())  # noqa: E731
-    assert jerk(smooth) < 0.5 * jerk(plain)
-
-
-def test_no_caps_no_smoothing_needed() -> None:
-    assert torch.equal(smooth_fallback_weights(torch.ones(20), 8, 3), torch.ones(20))
-    cap = _caps()
-    assert torch.equal(smooth_fallback_weights(cap, 8, 0), fallback_weights(cap, 8))
 
 
 def _check(frames: list[int], depth: torch.Tensor) -> FrameCheck:

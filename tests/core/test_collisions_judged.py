@@ -1,4 +1,4 @@
-"""The collision stage measures the judge's pairs only, holds the head in the torso at the input's depth, and
+"""The collision stage measures the judge's pairs only, prices a penetrating pair at the input's depth, and
 pulls end effectors toward the source's positions relative to the hips, less so for a hand in contact (small
 built cases)."""
 
@@ -41,7 +41,7 @@ def test_judged_allowed_keeps_the_hand_in_the_torso_and_drops_the_torso_in_the_h
     assert not bool((allowed & ~ctx.sdf.allowed).any())
 
 
-def _penetration_at_input(hold: torch.Tensor | None) -> float:
+def _penetration_at_input() -> float:
     ch = _arm_boxes()
     before = _pushed_in(ch, 0.02, frames=3)
     ctx = _context(ch, before)
@@ -52,16 +52,12 @@ def _penetration_at_input(hold: torch.Tensor | None) -> float:
         posed, seg_mats, _ = poser(local, before.translations.float())
     exempt = torch.zeros(3, ctx.parts.num_parts, len(CLUSTERS), dtype=torch.bool)
     triples = candidate_triples(ctx.sdf, points, posed, seg_mats, torch.arange(3), exempt, ctx.sdf.allowed, 0.05,
-                                0.001, -0.001, hold=hold)  # fmt: skip
+                                0.001, -0.001)  # fmt: skip
     return float(penetration_energy(ctx.sdf, triples, posed, seg_mats, 1.0))
 
 
-def test_a_held_pair_costs_nothing_at_the_input_depth() -> None:
-    hold = torch.zeros(len(CLUSTERS), len(CLUSTERS), dtype=torch.bool)
-    assert _penetration_at_input(hold) > 1.0  # 2 cm deep: pushed out
-    hold[CLUSTERS.index("left_arm"), CLUSTERS.index("torso")] = True
-    hold[CLUSTERS.index("torso"), CLUSTERS.index("left_arm")] = True
-    assert _penetration_at_input(hold) < 1e-6  # held: only deeper would cost
+def test_a_penetrating_pair_costs_at_the_input_depth() -> None:
+    assert _penetration_at_input() > 1.0  # 2 cm deep: every pair is pushed out, the head in the torso too
 
 
 def test_end_effector_targets_follow_the_source_relative_to_the_hips() -> None:

@@ -14,7 +14,7 @@ from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_n
 
 F = 40
 NO_CONTACTS = ContactInstances(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long))
-SETTINGS = FallbackSettings(rounds=4, factor=0.5, floor=0.2, ramp=4, smooth=0)
+SETTINGS = FallbackSettings(rounds=4, factor=0.5, floor=0.2, ramp=4)
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ def test_a_repair_is_tried_before_falling_back() -> None:
 def test_changes_never_measured_go_back_to_the_input() -> None:
     harm = torch.full((F,), 0.05)  # worse everywhere, at every weight: rounds run out
     before, measure = _toy(harm)
-    one_round = FallbackSettings(rounds=1, factor=0.5, floor=0.2, ramp=4, smooth=0)
+    one_round = FallbackSettings(rounds=1, factor=0.5, floor=0.2, ramp=4)
     guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, one_round)
     assert bool((guard.weight == 0.0).all())
     assert torch.equal(guard.final.max_depth, before.max_depth)
