@@ -240,7 +240,7 @@ def contact_pair_distances(character: Character, contacts: ContactConstraints | 
     return (a - b).norm(dim=-1), frame
 
 
-# --- penetration per body part (issue 8, part 2) -------------------------------------------------------------
+# --- penetration per body part -------------------------------------------------------------------------------
 
 
 def vertex_part_clusters(parts: BodyParts) -> Tensor:
@@ -272,10 +272,10 @@ def part_split(m: ClipMeasures, tolerance: float) -> tuple[dict[str, float] | No
     return summary, series
 
 
-# --- hand-to-part distances of the source contacts on this body (issue 8, contacts) ----------------------------
+# --- hand-to-part distances of the source contacts on this body -----------------------------------------------
 # ACCEPTANCE.md "contact preservation": a source contact (hand, part, frame) is kept when the result's hand is
 # within 2.5 cm (at 1.80 m) of that part's surface, 0 when inside. Vertex pairs (contact_distance above) carry the
-# correspondence's error (about 4 cm at the 90th percentile), larger than their 1 cm threshold.
+# correspondence's error (docs/metrics.md), larger than their 1 cm threshold.
 
 CONTACT_KEPT_M = 0.025  # at 1.80 m: ACCEPTANCE.md "contact preservation"
 FALSE_CONTACT_M = 0.01  # at 1.80 m: ACCEPTANCE.md "false contacts" (far on the source, closer than this here)
@@ -472,29 +472,39 @@ def _joint_errors(a: ClipMeasures, b: ClipMeasures, root_relative: bool) -> Tens
     return (pa[:f] - pb[:f]).norm(dim=-1).mean(-1)
 
 
-def summarize(
-    m: ClipMeasures,
-    original: ClipMeasures | None = None,
-    reference: ClipMeasures | None = None,
-    source_feet: FootContacts | None = None,
-    params: MetricParams | None = None,
-) -> MethodMetrics:
-    """The summary and per-frame series of ``m``. ``original``: the motion a refinement started from (MPJPE,
-    M_i, M_o are measured against it; without it, against ``m`` itself). ``reference``: a ground-truth motion
-    on the same character (global position error). ``source_feet``: the source's foot contacts (accuracy, and
-    the frames where foot skate is measured; without them the result's own contacts are used)."""
-    params = params or MetricParams()
-    s = m.scale_to_180
-    cm = 100.0
-    f_n = m.num_frames
-    tol = params.penetration_tolerance_m / s
-    # Penetration.
-    frame_max = m.depths.frame_max()
-    pen_verts = m.depths.count_above(tol).float() * (100.0 / max(m.num_vertices, 1))
-    pen_by_part, pen_part_series = part_split(m, tol)
-    # Paper 2 collision metrics (cm^2).
+@dataclass
+class _Penetration:
+    """Per frame ``(F,)``: the deepest vertex (m), the share (%) of body vertices deeper than the tolerance, the
+    lowest vertex's depth below the ground (m); the per-part split (:func:`part_split`)."""
+
+    frame_max: Tensor
+    vertices: Tensor
+    ground: Tensor
+    by_part: dict[str, float] | None
+    part_series: dict[str, Series]
+
+
+def _penetration(m: ClipMeasures, tol: float) -> _Penetration:
+    """Penetration of ``m``'s vertices deeper than ``tol`` (m, the body's scale) and of the ground."""
+    share = m.depths.count_above(tol).float() * (100.0 / max(m.num_vertices, 1))
+    return _Penetration(m.depths.frame_max(), share, (-m.lowest_vertex).clamp_min(0), *part_split(m, tol))
+
+
+@dataclass
+class _Collisions:
+    """Paper 2's collision figures (m^2): m_c over colliding limbs, m_i and m_o over the limbs that collided in
+    the original; depth ``(F,)`` the deepest limb's collision depth (m)."""
+
+    m_c: float | None
+    m_i: float | None
+    m_o: float | None
+    depth: Tensor
+
+
+def _collisions(m: ClipMeasures, original: ClipMeasures | None) -> _Collisions:
+    """Collision figures of ``m``'s limb distances ``(F, 4)`` against ``original``'s (``m``'s own without it)."""
     d_cur = m.limb_distance
-    d_org = (original or m).limb_distance[:f_n]
+    d_org = (original or m).limb_distance[: m.num_frames]
     valid = ~torch.isnan(d_cur)
     colliding = (d_cur < 0) & valid
     m_c = _mean(d_cur[colliding].pow(2)) if colliding.any() else 0.0
@@ -502,15 +512,49 @@ def summarize(
     cur_at = d_cur[: d_org.shape[0]][was]
     m_i = _mean(cur_at.clamp_max(0).pow(2)) if was.any() else None
     m_o = _mean(cur_at.clamp_min(0).pow(2)) if was.any() else None
-    collision_depth = (-d_cur).clamp_min(0).nan_to_num(0.0).amax(-1)
-    # Contacts.
-    c_mean = _mean(m.contact_distance)
-    c_mse = _mean(m.contact_distance.pow(2))
-    c_ok = _mean((m.contact_distance < params.contact_tolerance_m / s).float() * 100.0)
-    c_count = torch.zeros(f_n).index_add(0, m.contact_frame, torch.ones_like(m.contact_distance))
-    c_sum = torch.zeros(f_n).index_add(0, m.contact_frame, m.contact_distance)
-    c_frame = c_sum / c_count.clamp_min(1)
-    # Feet.
+    return _Collisions(m_c, m_i, m_o, (-d_cur).clamp_min(0).nan_to_num(0.0).amax(-1))
+
+
+@dataclass
+class _Contacts:
+    """Contact pair figures (m): mean, mean square, share within tolerance (%); per frame ``(F,)`` the pairs'
+    count and mean distance."""
+
+    mean: float | None
+    mse: float | None
+    satisfied: float | None
+    count: Tensor
+    per_frame: Tensor
+
+
+def _contacts(m: ClipMeasures, params: MetricParams) -> _Contacts:
+    """Figures of the contact constraints' vertex-pair distances ``(M,)``."""
+    s = m.scale_to_180
+    c_count = torch.zeros(m.num_frames).index_add(0, m.contact_frame, torch.ones_like(m.contact_distance))
+    c_sum = torch.zeros(m.num_frames).index_add(0, m.contact_frame, m.contact_distance)
+    return _Contacts(
+        _mean(m.contact_distance), _mean(m.contact_distance.pow(2)),
+        _mean((m.contact_distance < params.contact_tolerance_m / s).float() * 100.0), c_count,
+        c_sum / c_count.clamp_min(1),
+    )  # fmt: skip
+
+
+@dataclass
+class _Feet:
+    """Foot figures: accuracy against the source's labels (None without them); planted ``(F, 4')`` the labels
+    skate is measured on; skate ``(N,)`` horizontal steps of planted feet (m/frame), per frame ``(F,)`` their
+    mean and whether the frame has one."""
+
+    accuracy: float | None
+    planted: Tensor
+    skate: Tensor
+    skate_frame: Tensor
+    skate_valid: Tensor
+
+
+def _feet(m: ClipMeasures, source_feet: FootContacts | None) -> _Feet:
+    """Foot contact accuracy and skate of ``m``, on the source's planted frames when given, else its own."""
+    f_n = m.num_frames
     avail = m.feet.available
     labels = m.feet.labels[:, avail]
     accuracy = None
@@ -532,66 +576,120 @@ def summarize(
         skate_frame[1:] = (step * both).sum(-1) / cnt.clamp_min(1)
         skate_valid[1:] = cnt > 0
     skate = torch.cat(skate_all) if skate_all else torch.zeros(0)
-    ground_pen = (-m.lowest_vertex).clamp_min(0)
-    # Joints: MPJPE (root-relative, against the original), global position error (against the reference).
-    mpjpe = _joint_errors(m, original, True) if original is not None else None
-    gpe = _joint_errors(m, reference, False) if reference is not None else None
-    gpe_mse = None
-    if reference is not None:
-        common = [n for n in m.joint_names if n in reference.joint_names]
-        ia = torch.tensor([m.joint_names.index(n) for n in common])
-        ib = torch.tensor([reference.joint_names.index(n) for n in common])
-        f = min(f_n, reference.num_frames)
-        gpe_mse = float((m.joints[:f, ia] - reference.joints[:f, ib]).pow(2).sum(-1).mean())
+    return _Feet(accuracy, planted, skate, skate_frame, skate_valid)
+
+
+def _global_position_mse(m: ClipMeasures, reference: ClipMeasures) -> float:
+    """Mean squared joint position error (m^2) against ``reference`` over the canonical joints both have."""
+    common = [n for n in m.joint_names if n in reference.joint_names]
+    ia = torch.tensor([m.joint_names.index(n) for n in common])
+    ib = torch.tensor([reference.joint_names.index(n) for n in common])
+    f = min(m.num_frames, reference.num_frames)
+    return float((m.joints[:f, ia] - reference.joints[:f, ib]).pow(2).sum(-1).mean())
+
+
+@dataclass
+class _Errors:
+    """Per frame ``(F,)`` MPJPE against the original and global position error against the reference (m), and
+    the global position MSE (m^2); None where there is nothing to compare with."""
+
+    mpjpe: Tensor | None
+    gpe: Tensor | None
+    gpe_mse: float | None
+
+
+def _errors(m: ClipMeasures, original: ClipMeasures | None, reference: ClipMeasures | None) -> _Errors:
+    """MPJPE (root-relative, against ``original``) and global position error (against ``reference``)."""
+    return _Errors(
+        _joint_errors(m, original, True) if original is not None else None,
+        _joint_errors(m, reference, False) if reference is not None else None,
+        _global_position_mse(m, reference) if reference is not None else None,
+    )
+
+
+def _summary(
+    m: ClipMeasures, tol: float, pen: _Penetration, col: _Collisions, con: _Contacts, feet: _Feet, err: _Errors
+) -> MetricSummary:
+    """The summary numbers, in cm (and cm^2, cm^3) on the body with their values at 1.80 m."""
+    s, cm, f_n = m.scale_to_180, 100.0, m.num_frames
+    frame_max, ground_pen = pen.frame_max, pen.ground
     acc, jerk = _smoothness(m.joints)
-    summary = MetricSummary(
+    return MetricSummary(
         frames=f_n,
         fps=m.fps,
         penetration_volume=measure(float(m.penetration_volume.mean()) * cm**3 if f_n else None, s**3, "cm^3"),
         penetration_max_depth=measure(float(frame_max.max()) * cm if f_n else None, s, "cm"),
         penetration_mean_depth=measure(float(frame_max.mean()) * cm if f_n else None, s, "cm"),
-        penetrating_vertices_percent=_round(_mean(pen_verts)),
+        penetrating_vertices_percent=_round(_mean(pen.vertices)),
         penetrating_frames_percent=_round(_mean((frame_max > tol).float() * 100.0)),
-        penetrating_vertices_percent_by_part=pen_by_part,
+        penetrating_vertices_percent_by_part=pen.by_part,
         contact_pairs=int(m.contact_distance.numel()),
-        contact_frames=int((c_count > 0).sum()),
-        contact_distance_mean=measure(c_mean * cm if c_mean is not None else None, s, "cm"),
-        contact_mse=measure(c_mse * cm**2 if c_mse is not None else None, s**2, "cm^2"),
-        contact_satisfied_percent=_round(c_ok),
-        foot_contact_accuracy=_round(accuracy),
-        foot_skate=measure(float(skate.mean()) * cm if skate.numel() else None, s, "cm/frame"),
-        foot_contact_frames=int(planted.any(-1).sum()) if planted.numel() else 0,
+        contact_frames=int((con.count > 0).sum()),
+        contact_distance_mean=measure(con.mean * cm if con.mean is not None else None, s, "cm"),
+        contact_mse=measure(con.mse * cm**2 if con.mse is not None else None, s**2, "cm^2"),
+        contact_satisfied_percent=_round(con.satisfied),
+        foot_contact_accuracy=_round(feet.accuracy),
+        foot_skate=measure(float(feet.skate.mean()) * cm if feet.skate.numel() else None, s, "cm/frame"),
+        foot_contact_frames=int(feet.planted.any(-1).sum()) if feet.planted.numel() else 0,
         ground_penetration_mean=measure(float(ground_pen.mean()) * cm if f_n else None, s, "cm"),
         ground_penetration_max=measure(float(ground_pen.max()) * cm if f_n else None, s, "cm"),
-        global_position_error=measure(_scaled(_mean(gpe) if gpe is not None else None, cm), s, "cm"),
-        global_position_mse=measure(gpe_mse * cm**2 if gpe_mse is not None else None, s**2, "cm^2"),
-        mpjpe=measure(_scaled(_mean(mpjpe) if mpjpe is not None else None, cm), s, "cm"),
-        m_c=measure(m_c * cm**2 if m_c is not None else None, s**2, "cm^2"),
-        m_i=measure(m_i * cm**2 if m_i is not None else None, s**2, "cm^2"),
-        m_o=measure(m_o * cm**2 if m_o is not None else None, s**2, "cm^2"),
+        global_position_error=measure(_scaled(_mean(err.gpe) if err.gpe is not None else None, cm), s, "cm"),
+        global_position_mse=measure(err.gpe_mse * cm**2 if err.gpe_mse is not None else None, s**2, "cm^2"),
+        mpjpe=measure(_scaled(_mean(err.mpjpe) if err.mpjpe is not None else None, cm), s, "cm"),
+        m_c=measure(col.m_c * cm**2 if col.m_c is not None else None, s**2, "cm^2"),
+        m_i=measure(col.m_i * cm**2 if col.m_i is not None else None, s**2, "cm^2"),
+        m_o=measure(col.m_o * cm**2 if col.m_o is not None else None, s**2, "cm^2"),
         acceleration=measure(acc * cm if acc is not None else None, s, "cm/frame^2"),
         jerk=measure(jerk * cm if jerk is not None else None, s, "cm/frame^3"),
         **contact_hand_summary(m),
     )
-    k = s * cm
+
+
+def _all_series(
+    m: ClipMeasures, k: float, pen: _Penetration, col: _Collisions, con: _Contacts, feet: _Feet, err: _Errors
+) -> dict[str, Series]:
+    """The per-frame series, in cm at 1.80 m (``k``: cm at 1.80 m per body metre; also cm^3, %, 0/1)."""
     series: dict[str, Series] = {
-        "penetration_max_depth": _series(frame_max * k, "cm at 1.80 m"),
+        "penetration_max_depth": _series(pen.frame_max * k, "cm at 1.80 m"),
         "penetration_volume": _series(m.penetration_volume * k**3, "cm^3 at 1.80 m"),
-        "penetrating_vertices_percent": _series(pen_verts, "%"),
-        **pen_part_series,
-        "collision_depth": _series(collision_depth * k, "cm at 1.80 m"),
-        "contact_distance": _series(c_frame * k, "cm at 1.80 m", c_count > 0),
-        "foot_skate": _series(skate_frame * k, "cm/frame at 1.80 m", skate_valid),
-        "ground_penetration": _series(ground_pen * k, "cm at 1.80 m"),
+        "penetrating_vertices_percent": _series(pen.vertices, "%"),
+        **pen.part_series,
+        "collision_depth": _series(col.depth * k, "cm at 1.80 m"),
+        "contact_distance": _series(con.per_frame * k, "cm at 1.80 m", con.count > 0),
+        "foot_skate": _series(feet.skate_frame * k, "cm/frame at 1.80 m", feet.skate_valid),
+        "ground_penetration": _series(pen.ground * k, "cm at 1.80 m"),
     }
     series.update(contact_hand_series(m))
     for c, name in enumerate(m.feet.names):
         if bool(m.feet.available[c]):
             series[f"foot_contact_{name}"] = _series(m.feet.labels[:, c].float(), "0/1", digits=0)
-    if mpjpe is not None:
-        series["mpjpe"] = _series(mpjpe * k, "cm at 1.80 m")
-    if gpe is not None:
-        series["global_position_error"] = _series(gpe * k, "cm at 1.80 m")
+    if err.mpjpe is not None:
+        series["mpjpe"] = _series(err.mpjpe * k, "cm at 1.80 m")
+    if err.gpe is not None:
+        series["global_position_error"] = _series(err.gpe * k, "cm at 1.80 m")
+    return series
+
+
+def summarize(
+    m: ClipMeasures,
+    original: ClipMeasures | None = None,
+    reference: ClipMeasures | None = None,
+    source_feet: FootContacts | None = None,
+    params: MetricParams | None = None,
+) -> MethodMetrics:
+    """The summary and per-frame series of ``m``. ``original``: the motion a refinement started from (MPJPE,
+    M_i, M_o are measured against it; without it, against ``m`` itself). ``reference``: a ground-truth motion
+    on the same character (global position error). ``source_feet``: the source's foot contacts (accuracy, and
+    the frames where foot skate is measured; without them the result's own contacts are used)."""
+    params = params or MetricParams()
+    cm = 100.0
+    s = m.scale_to_180
+    tol = params.penetration_tolerance_m / s
+    pen, col, con = _penetration(m, tol), _collisions(m, original), _contacts(m, params)
+    feet, err = _feet(m, source_feet), _errors(m, original, reference)
+    k = s * cm
+    summary = _summary(m, tol, pen, col, con, feet, err)
+    series = _all_series(m, k, pen, col, con, feet, err)
     return MethodMetrics(summary=summary, series=series, penetration_vertices=penetrating_vertices(m, tol, k / cm))
 
 
