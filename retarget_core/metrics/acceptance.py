@@ -11,12 +11,12 @@ quantities are per 1/30 s. Parts, closed volumes, hands, feet and the seam band 
 
 - **Self-penetration.** A vertex of an arm is tested against torso, head, the other arm and both legs; of a leg
   against the other leg and both arms; head vertices against the torso (reported apart). Inside when the
-  generalised winding number of the posed closed part is above 0.5 (libigl's fast winding number, Barill et
-  al. 2018: exact near field, a Taylor expansion of far clusters with beta = 2, measured within 3e-4 of the
-  exact value here; exact for calls of at most ``EXACT_WN_MAX_QUERIES`` points). Depth = distance to the closed part's surface (exact, libigl's AABB
-  tree). Not counted: vertices in the seam band; vertices whose closest point on the part is on a cap fan
-  ("entered through a cap"). pen %v = mean over frames of the share of ALL vertices that penetrate (limbs
-  only; the head apart as head %v); mean depth over penetrating (frame, vertex); frames > 1 cm = share of
+  generalised winding number of the posed closed part is above 0.5 (libigl's fast winding number, Barill et al.
+  2018: exact near field, a Taylor expansion of far clusters with beta = 2, its accuracy in docs/acceptance.md;
+  exact for calls of at most ``EXACT_WN_MAX_QUERIES`` points). Depth = distance to the closed part's surface
+  (exact, libigl's AABB tree). Not counted: vertices in the seam band; vertices whose closest point on the part is
+  on a cap fan ("entered through a cap"). pen %v = mean over frames of the share of ALL vertices that penetrate
+  (limbs only; the head apart as head %v); mean depth over penetrating (frame, vertex); frames > 1 cm = share of
   frames whose deepest counted vertex is deeper than 1 cm.
 - **Hand self-contact.** Per hand and each of head, torso, the other arm, the legs (both): the distance from
   the hand's vertices to that part's closed surface (exact), 0 when a hand vertex is inside. Only hand
@@ -30,8 +30,7 @@ quantities are per 1/30 s. Parts, closed volumes, hands, feet and the seam band 
 
 Speed: the meshes are posed by linear blend skinning in one batch; per frame and part one libigl call answers
 every candidate vertex (vertices of the tested parts inside the part's posed bounding box, and hand vertices
-near it). About 30-60 ms per frame on the 13k-vertex bodies on one core (see
-``benchmarks/eval/acceptance_copy.py``).
+near it). Its speed: docs/acceptance.md (``benchmarks/eval/acceptance_copy.py``).
 """
 
 from __future__ import annotations
@@ -40,6 +39,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -298,6 +298,117 @@ def _inside(part: ClosedPart, local: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.abs(winding_numbers(local, part.faces, q)) > 0.5
 
 
+@dataclass
+class _Balls:
+    """Bounding balls of the body's vertex clusters in one posed frame: centre ``(C, 3)``, radius ``(C,)``."""
+
+    centre: np.ndarray
+    radius: np.ndarray
+
+
+def _balls(body: AcceptanceBody, p: np.ndarray) -> _Balls:
+    """Each cluster's ball around its posed centroid, over the posed vertices ``p (V, 3)``."""
+    members = body.cluster_members
+    valid = members >= 0
+    pts = p[np.where(valid, members, 0)]  # (C, K, 3)
+    centre = (pts * valid[..., None]).sum(1) / valid.sum(1)[:, None]
+    radius = np.sqrt(np.where(valid, ((pts - centre[:, None]) ** 2).sum(-1), 0.0).max(1))
+    return _Balls(centre, radius)
+
+
+@dataclass
+class _PartQuery:
+    """One part against one frame's balls: the posed part ``local (V, 3)``; cand ``(C,)`` the balls that may
+    test against it (or hold a hand within reach), idx ``(N,)`` their indices; lower ``(C,)`` lower bounds of
+    every ball's member distances to the part; d_c ``(N,)`` the candidates' centroid distances and tree the
+    part's AABB tree (None without candidates)."""
+
+    name: str
+    part: ClosedPart
+    local: np.ndarray
+    cand: np.ndarray
+    idx: np.ndarray
+    lower: np.ndarray
+    d_c: np.ndarray
+    tree: Any
+
+
+def _part_query(
+    plan: _Plan, t_name: str, part: ClosedPart, p: np.ndarray, balls: _Balls, contact_range: float
+) -> _PartQuery:
+    """Cull the balls against part ``t_name`` posed by ``p (V, 3)``: the box gap, then the exact distance of
+    each candidate's centroid to the surface (libigl AABB tree) less its radius."""
+    import igl
+
+    local = part.posed(p)
+    centre, radius = balls.centre, balls.radius
+    gap = _box_gap(centre, local.min(0), local.max(0))
+    cand = plan.tester_cluster[t_name] & (gap <= radius)
+    for hc in plan.hand_cluster[t_name].values():
+        cand |= hc & (gap <= radius + contact_range)
+    idx = np.nonzero(cand)[0]
+    lower = gap - radius  # lower bounds of member distances (refined below for candidates)
+    if not len(idx):
+        return _PartQuery(t_name, part, local, cand, idx, lower, np.zeros(0), None)
+    tree = igl.AABB()
+    tree.init(local, part.faces)
+    d2, _, _ = tree.squared_distance(local, part.faces, np.ascontiguousarray(centre[idx]))
+    d_c = np.sqrt(d2)
+    lower[idx] = d_c - radius[idx]
+    return _PartQuery(t_name, part, local, cand, idx, lower, d_c, tree)
+
+
+def _test_members(
+    body: AcceptanceBody, plan: _Plan, q: _PartQuery, p: np.ndarray, balls: _Balls, depth: np.ndarray
+) -> dict[int, bool]:
+    """Inside tests of the candidates (members of balls that may reach the surface one by one, the centroid of
+    the others); raises ``depth (V,)`` to each counted penetrating vertex's depth. Returns, per hand index,
+    whether a vertex of that hand is inside the part."""
+    members = body.cluster_members
+    straddle = q.lower[q.idx] <= 0.0  # balls that may reach the surface: members tested one by one
+    m = members[q.idx[straddle]]
+    m = m[m >= 0]
+    far = q.idx[~straddle]
+    inside = _inside(q.part, q.local, np.concatenate([p[m], balls.centre[far]]))
+    inside_m, inside_c = inside[: len(m)], inside[len(m) :]
+    hand_inside = {
+        h: bool((inside_c & hc[far]).any()) or bool(inside_m[body.hand_of_vertex[m] == h].any())
+        for h, hc in plan.hand_cluster[q.name].items()
+    }
+    deep = far[inside_c & plan.tester_cluster[q.name][far]]
+    if len(deep):  # whole balls inside: their members are inside too
+        md = members[deep]
+        md = md[md >= 0]
+        m, inside_m = np.concatenate([m, md]), np.concatenate([inside_m, np.ones(len(md), dtype=bool)])
+    pen = m[plan.tester_vertex[q.name][m] & inside_m & ~body.seam[m]]
+    if len(pen):
+        d2, face, closest = q.tree.squared_distance(q.local, q.part.faces, np.ascontiguousarray(p[pen]))
+        sel = ~_through_cap(q.part, q.local, face, closest)
+        np.maximum.at(depth, pen[sel], np.sqrt(d2[sel]))
+    return hand_inside
+
+
+def _hand_distance(
+    body: AcceptanceBody, q: _PartQuery, hc: np.ndarray, p: np.ndarray, balls: _Balls, contact_range: float
+) -> float:
+    """The smallest distance from the hand's vertices (its clusters ``hc (C,)``) to the part, measured only on
+    clusters that may hold it (exact up to ``contact_range``, beyond it a lower bound)."""
+    mine = np.nonzero(hc & q.cand)[0]
+    exact = math.inf
+    if len(mine):
+        best = float((q.d_c[np.searchsorted(q.idx, mine)] + balls.radius[mine]).min())
+        near = mine[q.lower[mine] <= min(best, contact_range)]
+        hv = body.cluster_members[near]
+        hv = hv[hv >= 0]
+        if len(hv):
+            d2, _, _ = q.tree.squared_distance(q.local, q.part.faces, np.ascontiguousarray(p[hv]))
+            exact = float(np.sqrt(d2.min()))
+            hc = hc.copy()
+            hc[near] = False
+    bounds = np.maximum(q.lower[hc], 0.0)
+    return min(exact, float(bounds.min()) if len(bounds) else math.inf)
+
+
 def _frame(
     body: AcceptanceBody, plan: _Plan, p: np.ndarray, contact_range: float
 ) -> tuple[np.ndarray, dict[tuple[int, str], float]]:
@@ -308,76 +419,21 @@ def _frame(
     Culling (exact, nothing within the definitions is lost): clusters of nearby vertices are bounded by a
     ball around their posed centroid. A ball that misses the part's bounding box is outside. For the others
     the exact distance of its centroid to the surface (libigl AABB tree) less its radius bounds every
-    member's distance from below; a ball that
-    cannot reach the surface lies wholly inside or outside, so its centroid alone is tested; the members of the
-    other balls are tested one by one (and those of a ball found wholly inside, for their depths)."""
-    import igl
-
-    members = body.cluster_members
-    valid = members >= 0
-    pts = p[np.where(valid, members, 0)]  # (C, K, 3)
-    centre = (pts * valid[..., None]).sum(1) / valid.sum(1)[:, None]
-    radius = np.sqrt(np.where(valid, ((pts - centre[:, None]) ** 2).sum(-1), 0.0).max(1))
+    member's distance from below; a ball that cannot reach the surface lies wholly inside or outside, so its
+    centroid alone is tested; the members of the other balls are tested one by one (and those of a ball found
+    wholly inside, for their depths)."""
+    balls = _balls(body, p)
     depth = np.zeros(len(p))
     hand: dict[tuple[int, str], float] = {}
-    counted_ok = ~body.seam
     for t_name in PARTS:
         part = body.part(t_name)
         if part is None:
             continue
-        local = part.posed(p)
-        gap = _box_gap(centre, local.min(0), local.max(0))
-        cand = plan.tester_cluster[t_name] & (gap <= radius)
-        for hc in plan.hand_cluster[t_name].values():
-            cand |= hc & (gap <= radius + contact_range)
-        idx = np.nonzero(cand)[0]
-        lower = gap - radius  # lower bounds of member distances (refined below for candidates)
-        inside_m = np.zeros(0, dtype=bool)
-        m = np.zeros(0, dtype=np.int64)
-        hand_inside: dict[int, bool] = {}
-        if len(idx):
-            tree = igl.AABB()
-            tree.init(local, part.faces)
-            d2, _, _ = tree.squared_distance(local, part.faces, np.ascontiguousarray(centre[idx]))
-            d_c = np.sqrt(d2)
-            lower[idx] = d_c - radius[idx]
-            straddle = lower[idx] <= 0.0  # balls that may reach the surface: members tested one by one
-            m = members[idx[straddle]]
-            m = m[m >= 0]
-            far = idx[~straddle]
-            inside = _inside(part, local, np.concatenate([p[m], centre[far]]))
-            inside_m, inside_c = inside[: len(m)], inside[len(m) :]
-            for h, hc in plan.hand_cluster[t_name].items():
-                hand_inside[h] = bool((inside_c & hc[far]).any()) or bool(inside_m[body.hand_of_vertex[m] == h].any())
-            deep = far[inside_c & plan.tester_cluster[t_name][far]]
-            if len(deep):  # whole balls inside: their members are inside too
-                md = members[deep]
-                md = md[md >= 0]
-                m, inside_m = np.concatenate([m, md]), np.concatenate([inside_m, np.ones(len(md), dtype=bool)])
-            pen = m[plan.tester_vertex[t_name][m] & inside_m & counted_ok[m]]
-            if len(pen):
-                d2, face, closest = tree.squared_distance(local, part.faces, np.ascontiguousarray(p[pen]))
-                sel = ~_through_cap(part, local, face, closest)
-                np.maximum.at(depth, pen[sel], np.sqrt(d2[sel]))
+        q = _part_query(plan, t_name, part, p, balls, contact_range)
+        hand_inside = _test_members(body, plan, q, p, balls, depth) if len(q.idx) else {}
         for h, hc in plan.hand_cluster[t_name].items():
-            if hand_inside.get(h, False):
-                hand[(h, t_name)] = 0.0
-                continue
-            # The smallest distance of the hand's vertices: only clusters that may hold it are measured.
-            mine = np.nonzero(hc & cand)[0]
-            exact = math.inf
-            if len(mine):
-                best = float((d_c[np.searchsorted(idx, mine)] + radius[mine]).min())
-                near = mine[lower[mine] <= min(best, contact_range)]
-                hv = members[near]
-                hv = hv[hv >= 0]
-                if len(hv):
-                    d2, _, _ = tree.squared_distance(local, part.faces, np.ascontiguousarray(p[hv]))
-                    exact = float(np.sqrt(d2.min()))
-                    hc = hc.copy()
-                    hc[near] = False
-            bounds = np.maximum(lower[hc], 0.0)
-            hand[(h, t_name)] = min(exact, float(bounds.min()) if len(bounds) else math.inf)
+            inside = hand_inside.get(h, False)
+            hand[(h, t_name)] = 0.0 if inside else _hand_distance(body, q, hc, p, balls, contact_range)
     return depth, hand
 
 
