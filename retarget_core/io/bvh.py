@@ -167,8 +167,8 @@ def _channel_name(tok: str, lines: _Lines) -> str:
     )
 
 
-def _parse_hierarchy(lines: _Lines, max_joints: int) -> list[_Joint]:
-    """Joints in file order; stops after the MOTION keyword."""
+def _expect_hierarchy(lines: _Lines) -> None:
+    """Consume the HIERARCHY keyword that opens the file."""
     first = lines.peek()
     if first is None:
         raise InvalidFileError("the file is empty", lines.label)
@@ -176,92 +176,137 @@ def _parse_hierarchy(lines: _Lines, max_joints: int) -> list[_Joint]:
         raise lines.error(f"expected HIERARCHY, found {first[:40]!r}")
     lines.take("HIERARCHY")
 
-    joints: list[_Joint] = []
-    stack: list[int] = []  # open joint blocks
 
-    def open_joint(name_tokens: list[str], parent: int, end_site: bool) -> None:
-        brace = False
-        if name_tokens and name_tokens[-1].endswith("{"):
-            last = name_tokens[-1][:-1]
-            name_tokens = name_tokens[:-1] + ([last] if last else [])
-            brace = True
+class _Hierarchy:
+    """The hierarchy parser's state: the joints read so far (file order) and the stack of open joint blocks."""
+
+    def __init__(self, lines: _Lines, max_joints: int) -> None:
+        self.lines = lines
+        self.max_joints = max_joints
+        self.joints: list[_Joint] = []
+        self.stack: list[int] = []
+
+    @property
+    def current(self) -> _Joint | None:
+        """The innermost open joint."""
+        return self.joints[self.stack[-1]] if self.stack else None
+
+    def _check_name(self, name_tokens: list[str], end_site: bool) -> None:
+        """Refuse a nameless ROOT/JOINT, an over-long name and one joint too many."""
+        lines = self.lines
         if not end_site and not name_tokens:
             raise lines.error("a ROOT/JOINT has no name")
         chars = sum(map(len, name_tokens)) + len(name_tokens) - 1
         if chars > MAX_JOINT_NAME_CHARS:
             raise LimitExceededError(f"line {lines.line}: a joint name of {chars} characters (the limit is "
-                                     f"{MAX_JOINT_NAME_CHARS}, MAX_JOINT_NAME_CHARS)", lines.label)
-        if len(joints) >= max_joints:
-            raise LimitExceededError(f"more than {max_joints} joints (setting max_joints)", lines.label)
-        if not brace:
-            tok = lines.take("'{'")
-            if tok != "{":
-                raise lines.error(f"expected '{{', found {tok[:40]!r}")
-        # End Sites get their final name (after duplicate parents are renamed) in _unique_names.
-        name = joints[parent].name + END_SUFFIX if end_site else " ".join(name_tokens)
-        joints.append(_Joint(name=name, parent=parent, line=lines.line, end_site=end_site))
-        stack.append(len(joints) - 1)
+                                     f"{MAX_JOINT_NAME_CHARS}, MAX_JOINT_NAME_CHARS)", lines.label)  # fmt: skip
+        if len(self.joints) >= self.max_joints:
+            raise LimitExceededError(f"more than {self.max_joints} joints (setting max_joints)", lines.label)
 
+    def open_joint(self, name_tokens: list[str], parent: int, end_site: bool) -> None:
+        """A ROOT, JOINT or End Site block named by ``name_tokens`` (its '{' may end the name or follow it)."""
+        brace = False
+        if name_tokens and name_tokens[-1].endswith("{"):
+            last = name_tokens[-1][:-1]
+            name_tokens = name_tokens[:-1] + ([last] if last else [])
+            brace = True
+        self._check_name(name_tokens, end_site)
+        if not brace:
+            tok = self.lines.take("'{'")
+            if tok != "{":
+                raise self.lines.error(f"expected '{{', found {tok[:40]!r}")
+        # End Sites get their final name (after duplicate parents are renamed) in _unique_names.
+        name = self.joints[parent].name + END_SUFFIX if end_site else " ".join(name_tokens)
+        self.joints.append(_Joint(name=name, parent=parent, line=self.lines.line, end_site=end_site))
+        self.stack.append(len(self.joints) - 1)
+
+    def ends_early(self) -> InvalidFileError:
+        """The error for a file that ends before MOTION."""
+        if self.stack:
+            return InvalidFileError(
+                f"the file ends inside joint {self.joints[self.stack[-1]].name!r} (missing '}}')", self.lines.label
+            )
+        return InvalidFileError("the file has no MOTION section", self.lines.label)
+
+    def motion(self) -> list[_Joint]:
+        """The joints, at the MOTION keyword (every block closed, at least one ROOT)."""
+        current = self.current
+        if current is not None:
+            raise self.lines.error(f"MOTION inside joint {current.name!r} (missing '}}')")
+        if not self.joints:
+            raise self.lines.error("MOTION before any ROOT")
+        return self.joints
+
+    def root(self) -> None:
+        if self.stack:
+            raise self.lines.error("ROOT inside another joint")
+        self.open_joint(self.lines.rest_of_line(), -1, False)
+
+    def joint(self) -> None:
+        current = self.current
+        if current is None or current.end_site:
+            raise self.lines.error("JOINT outside a ROOT or inside an End Site")
+        self.open_joint(self.lines.rest_of_line(), self.stack[-1], False)
+
+    def end_site(self) -> None:
+        lines, current = self.lines, self.current
+        site = lines.take("'Site'")
+        if site.upper() != "SITE":
+            raise lines.error(f"expected 'End Site', found 'End {site[:40]}'")
+        if current is None or current.end_site:
+            raise lines.error("End Site outside a joint")
+        self.open_joint(lines.rest_of_line(), self.stack[-1], True)
+
+    def offset(self) -> None:
+        lines, current = self.lines, self.current
+        if current is None:
+            raise lines.error("OFFSET outside a joint")
+        if current.offset is not None:
+            raise lines.error(f"second OFFSET in joint {current.name!r}")
+        x, y, z = (_number(lines.take("an OFFSET value"), "OFFSET value", lines) for _ in range(3))
+        current.offset = (x, y, z)
+
+    def channels(self) -> None:
+        lines, current = self.lines, self.current
+        if current is None:
+            raise lines.error("CHANNELS outside a joint")
+        if current.channels:
+            raise lines.error(f"second CHANNELS in joint {current.name!r}")
+        count_tok = lines.take("a channel count")
+        if not count_tok.isdigit() or int(count_tok) > 6:
+            raise lines.error(f"channel count {count_tok[:40]!r} is not a whole number from 0 to 6")
+        names = [_channel_name(lines.take("a channel name"), lines) for _ in range(int(count_tok))]
+        if len(set(names)) != len(names):
+            raise lines.error(f"joint {current.name!r} repeats a channel: {' '.join(names)}")
+        if current.end_site and names:
+            raise lines.error("an End Site cannot have channels")
+        current.channels = names
+
+    def close(self) -> None:
+        current = self.current
+        if current is None:
+            raise self.lines.error("'}' without an open joint")
+        if current.offset is None:
+            raise self.lines.error(f"joint {current.name!r} has no OFFSET")
+        self.stack.pop()
+
+
+def _parse_hierarchy(lines: _Lines, max_joints: int) -> list[_Joint]:
+    """Joints in file order; stops after the MOTION keyword."""
+    _expect_hierarchy(lines)
+    h = _Hierarchy(lines, max_joints)
+    keywords = {"ROOT": h.root, "JOINT": h.joint, "END": h.end_site, "OFFSET": h.offset, "CHANNELS": h.channels,
+                "}": h.close}  # fmt: skip
     while True:
-        tok = lines.peek()
-        if tok is None:
-            if stack:
-                raise InvalidFileError(
-                    f"the file ends inside joint {joints[stack[-1]].name!r} (missing '}}')", lines.label
-                )
-            raise InvalidFileError("the file has no MOTION section", lines.label)
+        if lines.peek() is None:
+            raise h.ends_early()
         key = lines.take("a keyword").upper()
-        current = joints[stack[-1]] if stack else None
         if key == "MOTION":
-            if stack:
-                raise lines.error(f"MOTION inside joint {current.name!r} (missing '}}')")  # type: ignore[union-attr]
-            if not joints:
-                raise lines.error("MOTION before any ROOT")
-            return joints
-        if key == "ROOT":
-            if stack:
-                raise lines.error("ROOT inside another joint")
-            open_joint(lines.rest_of_line(), -1, False)
-        elif key == "JOINT":
-            if current is None or current.end_site:
-                raise lines.error("JOINT outside a ROOT or inside an End Site")
-            open_joint(lines.rest_of_line(), stack[-1], False)
-        elif key == "END":
-            site = lines.take("'Site'")
-            if site.upper() != "SITE":
-                raise lines.error(f"expected 'End Site', found 'End {site[:40]}'")
-            if current is None or current.end_site:
-                raise lines.error("End Site outside a joint")
-            open_joint(lines.rest_of_line(), stack[-1], True)
-        elif key == "OFFSET":
-            if current is None:
-                raise lines.error("OFFSET outside a joint")
-            if current.offset is not None:
-                raise lines.error(f"second OFFSET in joint {current.name!r}")
-            x, y, z = (_number(lines.take("an OFFSET value"), "OFFSET value", lines) for _ in range(3))
-            current.offset = (x, y, z)
-        elif key == "CHANNELS":
-            if current is None:
-                raise lines.error("CHANNELS outside a joint")
-            if current.channels:
-                raise lines.error(f"second CHANNELS in joint {current.name!r}")
-            count_tok = lines.take("a channel count")
-            if not count_tok.isdigit() or int(count_tok) > 6:
-                raise lines.error(f"channel count {count_tok[:40]!r} is not a whole number from 0 to 6")
-            names = [_channel_name(lines.take("a channel name"), lines) for _ in range(int(count_tok))]
-            if len(set(names)) != len(names):
-                raise lines.error(f"joint {current.name!r} repeats a channel: {' '.join(names)}")
-            if current.end_site and names:
-                raise lines.error("an End Site cannot have channels")
-            current.channels = names
-        elif key == "}":
-            if current is None:
-                raise lines.error("'}' without an open joint")
-            if current.offset is None:
-                raise lines.error(f"joint {current.name!r} has no OFFSET")
-            stack.pop()
-        else:
+            return h.motion()
+        handler = keywords.get(key)
+        if handler is None:
             raise lines.error(f"unexpected {key[:40]!r}")
+        handler()
 
 
 def _header_value(lines: _Lines, key: str) -> str:
@@ -588,6 +633,98 @@ def _safe_names(names: list[str]) -> list[str]:
     return out
 
 
+@dataclass
+class _Baked:
+    """A motion with its rest rotations baked in: offsets ``(J, 3)`` (rest positions relative to the parent, world
+    axes), local rotations ``(F, J, 4)`` and what position channels must hold ``(F, J, 3)``; moves ``(J,)``
+    whether a joint's translation leaves its rest offset in some frame."""
+
+    offsets: torch.Tensor
+    local_rot: torch.Tensor
+    position_values: torch.Tensor
+    moves: list[bool]
+
+
+def _bake(motion: Motion) -> _Baked:
+    """Local rotations ``Rw0_p * r * inv(Rw0_j)`` and offsets that reproduce the motion's joint positions."""
+    skeleton = motion.skeleton
+    parents = list(skeleton.parents)
+    num_joints = skeleton.num_joints
+    rest_rot, rest_pos = forward_kinematics(
+        parents, rot.normalize(skeleton.rest_rotations.double()), skeleton.rest_translations.double()
+    )
+    grot, gpos = forward_kinematics(parents, rot.normalize(motion.rotations.double()), motion.translations.double())
+    written_world = rot.mul(grot, rot.inv(rest_rot))  # (F, J, 4)
+    offsets = rest_pos.clone()
+    local_rot = written_world.clone()
+    local_pos = gpos.clone()
+    for j, p in enumerate(parents):
+        if p >= 0:
+            offsets[j] = rest_pos[j] - rest_pos[p]
+            inv_p = rot.inv(written_world[:, p])
+            local_rot[:, j] = rot.mul(inv_p, written_world[:, j])
+            local_pos[:, j] = rot.apply(inv_p, gpos[:, j] - gpos[:, p])
+    position_values = local_pos - offsets  # (F, J, 3): what position channels must hold
+    extent = float((rest_pos.max(0).values - rest_pos.min(0).values).norm()) if num_joints else 1.0
+    tolerance = 1e-6 * max(1.0, extent)
+    moves = (position_values.abs().amax(dim=(0, 2)) > tolerance).tolist() if motion.num_frames else [False] * num_joints
+    return _Baked(offsets, local_rot, position_values, moves)
+
+
+def _end_sites(parents: list[int], names: list[str], moves: list[bool]) -> list[bool]:
+    """``(J,)`` leaf joints named ``*_End`` whose translation stays at rest: written as End Sites."""
+    has_children = [False] * len(parents)
+    for p in parents:
+        if p >= 0:
+            has_children[p] = True
+    return [
+        parents[j] >= 0 and not has_children[j] and names[j].endswith(END_SUFFIX) and not moves[j]
+        for j in range(len(parents))
+    ]
+
+
+def _hierarchy(motion: Motion, baked: _Baked, order: str) -> tuple[list[str], list[torch.Tensor]]:
+    """The HIERARCHY section's lines and the motion table's columns ``(F, 3)`` in channel order."""
+    parents = list(motion.skeleton.parents)
+    num_joints = len(parents)
+    end_site = _end_sites(parents, list(motion.skeleton.names), baked.moves)
+    with_position = [parents[j] < 0 or baked.moves[j] for j in range(num_joints)]
+    euler = _to_euler(order, rot.normalize(baked.local_rot))  # (F, J, 3) in ``order``, degrees
+    names = _safe_names(list(motion.skeleton.names))
+    lines = ["HIERARCHY"]
+    columns: list[torch.Tensor] = []
+    depth_of = [0] * num_joints
+    open_blocks: list[int] = []  # joints whose '}' is pending
+    rot_channels = " ".join(f"{axis}rotation" for axis in order)
+    for j in _depth_first(parents):
+        p = parents[j]
+        depth_of[j] = depth_of[p] + 1 if p >= 0 else 0
+        while open_blocks and open_blocks[-1] != p:
+            closed = open_blocks.pop()
+            lines.append("\t" * depth_of[closed] + "}")
+        pad = "\t" * depth_of[j]
+        ox, oy, oz = baked.offsets[j].tolist()
+        if end_site[j]:
+            lines += [pad + "End Site", pad + "{", pad + f"\tOFFSET {ox:.6f} {oy:.6f} {oz:.6f}", pad + "}"]
+            continue
+        lines += [
+            pad + ("ROOT " if p < 0 else "JOINT ") + names[j],
+            pad + "{",
+            pad + f"\tOFFSET {ox:.6f} {oy:.6f} {oz:.6f}",
+        ]
+        if with_position[j]:
+            lines.append(pad + f"\tCHANNELS 6 Xposition Yposition Zposition {rot_channels}")
+            columns.append(baked.position_values[:, j])
+        else:
+            lines.append(pad + f"\tCHANNELS 3 {rot_channels}")
+        columns.append(euler[:, j])
+        open_blocks.append(j)
+    while open_blocks:
+        closed = open_blocks.pop()
+        lines.append("\t" * depth_of[closed] + "}")
+    return lines, columns
+
+
 def write_bvh(motion: Motion, path: str | Path, *, rotation_order: str = "ZYX") -> None:
     """Write ``motion`` as a BVH file whose forward kinematics reproduces the motion's joint positions.
 
@@ -605,73 +742,7 @@ def write_bvh(motion: Motion, path: str | Path, *, rotation_order: str = "ZYX") 
     order = rotation_order.upper()
     if sorted(order) != list(_AXES):
         raise ValueError(f"rotation_order must be a permutation of XYZ, got {rotation_order!r}")
-    skeleton = motion.skeleton
-    parents = list(skeleton.parents)
-    num_joints = skeleton.num_joints
-    rest_rot, rest_pos = forward_kinematics(
-        parents, rot.normalize(skeleton.rest_rotations.double()), skeleton.rest_translations.double()
-    )
-    grot, gpos = forward_kinematics(parents, rot.normalize(motion.rotations.double()), motion.translations.double())
-
-    written_world = rot.mul(grot, rot.inv(rest_rot))  # (F, J, 4)
-    offsets = rest_pos.clone()
-    local_rot = written_world.clone()
-    local_pos = gpos.clone()
-    for j, p in enumerate(parents):
-        if p >= 0:
-            offsets[j] = rest_pos[j] - rest_pos[p]
-            inv_p = rot.inv(written_world[:, p])
-            local_rot[:, j] = rot.mul(inv_p, written_world[:, j])
-            local_pos[:, j] = rot.apply(inv_p, gpos[:, j] - gpos[:, p])
-    position_values = local_pos - offsets  # (F, J, 3): what position channels must hold
-    extent = float((rest_pos.max(0).values - rest_pos.min(0).values).norm()) if num_joints else 1.0
-    tolerance = 1e-6 * max(1.0, extent)
-    moves = (position_values.abs().amax(dim=(0, 2)) > tolerance).tolist() if motion.num_frames else [False] * num_joints
-
-    has_children = [False] * num_joints
-    for p in parents:
-        if p >= 0:
-            has_children[p] = True
-    end_site = [
-        parents[j] >= 0 and not has_children[j] and skeleton.names[j].endswith(END_SUFFIX) and not moves[j]
-        for j in range(num_joints)
-    ]
-    with_position = [parents[j] < 0 or moves[j] for j in range(num_joints)]
-    euler = _to_euler(order, rot.normalize(local_rot))  # (F, J, 3) in ``order``, degrees
-    names = _safe_names(list(skeleton.names))
-
-    lines = ["HIERARCHY"]
-    columns: list[torch.Tensor] = []
-    depth_of = [0] * num_joints
-    open_blocks: list[int] = []  # joints whose '}' is pending
-    rot_channels = " ".join(f"{axis}rotation" for axis in order)
-    for j in _depth_first(parents):
-        p = parents[j]
-        depth_of[j] = depth_of[p] + 1 if p >= 0 else 0
-        while open_blocks and open_blocks[-1] != p:
-            closed = open_blocks.pop()
-            lines.append("\t" * depth_of[closed] + "}")
-        pad = "\t" * depth_of[j]
-        ox, oy, oz = offsets[j].tolist()
-        if end_site[j]:
-            lines += [pad + "End Site", pad + "{", pad + f"\tOFFSET {ox:.6f} {oy:.6f} {oz:.6f}", pad + "}"]
-            continue
-        lines += [
-            pad + ("ROOT " if p < 0 else "JOINT ") + names[j],
-            pad + "{",
-            pad + f"\tOFFSET {ox:.6f} {oy:.6f} {oz:.6f}",
-        ]
-        if with_position[j]:
-            lines.append(pad + f"\tCHANNELS 6 Xposition Yposition Zposition {rot_channels}")
-            columns.append(position_values[:, j])
-        else:
-            lines.append(pad + f"\tCHANNELS 3 {rot_channels}")
-        columns.append(euler[:, j])
-        open_blocks.append(j)
-    while open_blocks:
-        closed = open_blocks.pop()
-        lines.append("\t" * depth_of[closed] + "}")
-
+    lines, columns = _hierarchy(motion, _bake(motion), order)
     frame_time = 1.0 / motion.fps
     lines += ["MOTION", f"Frames: {motion.num_frames}", f"Frame Time: {frame_time:.8f}"]
     table = torch.cat(columns, dim=1).numpy() if columns else np.zeros((motion.num_frames, 0))
