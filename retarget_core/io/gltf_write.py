@@ -135,14 +135,8 @@ def _check(character: Character, motion: Motion | None) -> None:
         raise ValueError(f"{character.name}: skin weights must be non-negative with a positive sum per vertex")
 
 
-def build_gltf(character: Character, motion: Motion | None = None, *, clip_name: str = "retarget") -> pygltflib.GLTF2:
-    """The glTF document (with its binary blob set) of ``character``, animated by ``motion`` when given."""
-    sk = character.skeleton
-    num_joints = sk.num_joints
-    _check(character, motion)
-    blob = _Blob()
-
-    # Mesh.
+def _primitive(character: Character, blob: _Blob) -> pygltflib.Primitive:
+    """The skinned mesh's triangles: positions, normals, UVs when present, four joints and weights per vertex."""
     positions = character.vertices.detach().numpy().astype(np.float32)
     joints, weights = limit_influences(
         character.skin_joints.detach().numpy(), character.skin_weights.detach().numpy(), MAX_INFLUENCES
@@ -151,17 +145,31 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
         POSITION=blob.accessor(positions, FLOAT, "VEC3", target=ARRAY_BUFFER, bounds=True),
         NORMAL=blob.accessor(_normals(character), FLOAT, "VEC3", target=ARRAY_BUFFER),
     )
-    has_uv = character.uvs is not None
     if character.uvs is not None:
         attributes.TEXCOORD_0 = blob.accessor(character.uvs.detach().numpy(), FLOAT, "VEC2", target=ARRAY_BUFFER)
-    attributes.JOINTS_0 = blob.accessor(joints, UBYTE if num_joints < 256 else USHORT, "VEC4", target=ARRAY_BUFFER)
+    joint_type = UBYTE if character.skeleton.num_joints < 256 else USHORT
+    attributes.JOINTS_0 = blob.accessor(joints, joint_type, "VEC4", target=ARRAY_BUFFER)
     attributes.WEIGHTS_0 = blob.accessor(_weights_float32(weights), FLOAT, "VEC4", target=ARRAY_BUFFER)
     faces = character.faces.detach().numpy().reshape(-1)
     indices = blob.accessor(
         faces, USHORT if character.num_vertices <= 65535 else UINT, "SCALAR", target=ELEMENT_ARRAY_BUFFER
     )
+    return pygltflib.Primitive(attributes=attributes, indices=indices, material=0, mode=4)
 
-    # Material (the base-colour image only when the mesh has UVs and the image is PNG or JPEG).
+
+def _image_mime(image: bytes | None, mime: str | None) -> str | None:
+    """The image's MIME type: the one given, else PNG or JPEG by its signature, else None."""
+    if not image or mime is not None:
+        return mime
+    if image[:8] == b"\x89PNG\r\n\x1a\n":
+        return "image/png"
+    return "image/jpeg" if image[:3] == b"\xff\xd8\xff" else None
+
+
+def _material(
+    character: Character, blob: _Blob
+) -> tuple[pygltflib.Material, list[pygltflib.Image], list[pygltflib.Texture]]:
+    """The material, with the base-colour image only when the mesh has UVs and the image is PNG or JPEG."""
     mat = character.material
     pbr = pygltflib.PbrMetallicRoughness(
         baseColorFactor=[float(c) for c in mat.base_color],
@@ -169,42 +177,43 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
         roughnessFactor=float(mat.roughness),
     )
     images, textures = [], []
-    mime = mat.image_mime
-    if mat.image_bytes and mime is None:
-        mime = (
-            "image/png"
-            if mat.image_bytes[:8] == b"\x89PNG\r\n\x1a\n"
-            else "image/jpeg"
-            if mat.image_bytes[:3] == b"\xff\xd8\xff"
-            else None
-        )
-    if mat.image_bytes and has_uv and mime in ("image/png", "image/jpeg"):
+    mime = _image_mime(mat.image_bytes, mat.image_mime)
+    if mat.image_bytes and character.uvs is not None and mime in ("image/png", "image/jpeg"):
         images.append(pygltflib.Image(bufferView=blob.view(mat.image_bytes), mimeType=mime))
         textures.append(pygltflib.Texture(source=0))
         pbr.baseColorTexture = pygltflib.TextureInfo(index=0)
     material = pygltflib.Material(name=f"{character.name}_material", pbrMetallicRoughness=pbr, doubleSided=False)
+    return material, images, textures
 
-    # Skeleton and skin.
-    rest_rot = rot.normalize(sk.rest_rotations.detach().double())
-    grot, gpos = sk.rest_global()
-    world = np.zeros((num_joints, 4, 4))
+
+def _inverse_bind_matrices(character: Character) -> np.ndarray:
+    """``(J, 4, 4)`` inverses of the joints' rest world matrices."""
+    grot, gpos = character.skeleton.rest_global()
+    world = np.zeros((character.skeleton.num_joints, 4, 4))
     world[:, :3, :3] = rot.to_matrix(rot.normalize(grot.detach().double())).numpy()
     world[:, :3, 3] = gpos.detach().double().numpy()
     world[:, 3, 3] = 1.0
     ibm = np.linalg.inv(world)
     ibm[:, 3] = [0.0, 0.0, 0.0, 1.0]
+    return ibm
+
+
+def _skeleton(character: Character, blob: _Blob) -> tuple[list[pygltflib.Node], pygltflib.Skin, list[int]]:
+    """Joint nodes at their rest transforms then the mesh node, the skin, and the root joints."""
+    sk = character.skeleton
+    num_joints = sk.num_joints
+    rest_rot = rot.normalize(sk.rest_rotations.detach().double())
+    ibm = _inverse_bind_matrices(character)
     ibm_accessor = blob.accessor(ibm.transpose(0, 2, 1).reshape(num_joints, 16), FLOAT, "MAT4")
-    nodes = []
-    for j, name in enumerate(sk.names):
-        nodes.append(
-            pygltflib.Node(
-                name=name,
-                translation=[float(x) for x in sk.rest_translations[j].tolist()],
-                rotation=[float(x) for x in rest_rot[j].tolist()],
-                children=sk.children(j),
-            )
+    nodes = [
+        pygltflib.Node(
+            name=name,
+            translation=[float(x) for x in sk.rest_translations[j].tolist()],
+            rotation=[float(x) for x in rest_rot[j].tolist()],
+            children=sk.children(j),
         )
-    mesh_node = len(nodes)
+        for j, name in enumerate(sk.names)
+    ]
     nodes.append(pygltflib.Node(name=character.name, mesh=0, skin=0))
     roots = [j for j, p in enumerate(sk.parents) if p < 0]
     skin = pygltflib.Skin(
@@ -212,22 +221,23 @@ def build_gltf(character: Character, motion: Motion | None = None, *, clip_name:
     )
     if len(roots) == 1:
         skin.skeleton = roots[0]
+    return nodes, skin, roots
 
-    animations = []
-    if motion is not None:
-        animations.append(_animation(character, motion, blob, clip_name))
 
+def build_gltf(character: Character, motion: Motion | None = None, *, clip_name: str = "retarget") -> pygltflib.GLTF2:
+    """The glTF document (with its binary blob set) of ``character``, animated by ``motion`` when given."""
+    _check(character, motion)
+    blob = _Blob()
+    primitive = _primitive(character, blob)
+    material, images, textures = _material(character, blob)
+    nodes, skin, roots = _skeleton(character, blob)
+    animations = [_animation(character, motion, blob, clip_name)] if motion is not None else []
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator=GENERATOR),
         scene=0,
-        scenes=[pygltflib.Scene(name=character.name, nodes=[*roots, mesh_node])],
+        scenes=[pygltflib.Scene(name=character.name, nodes=[*roots, len(nodes) - 1])],
         nodes=nodes,
-        meshes=[
-            pygltflib.Mesh(
-                name=character.name,
-                primitives=[pygltflib.Primitive(attributes=attributes, indices=indices, material=0, mode=4)],
-            )
-        ],
+        meshes=[pygltflib.Mesh(name=character.name, primitives=[primitive])],
         skins=[skin],
         materials=[material],
         textures=textures,
