@@ -43,7 +43,7 @@ class LoadedMotion:
 
 
 def _read_any(
-    path: Path, fps: float | None
+    path: Path, fps: float | None, with_motions: bool = True
 ) -> tuple[FileFormat, Character | None, list[Motion], list[str], dict[str, str]]:
     fmt = detect_format(path)
     if fmt == "bvh":
@@ -60,7 +60,7 @@ def _read_any(
     else:
         from retarget_core.io.gltf_read import read_gltf
 
-        contents = read_gltf(path, fps=fps)
+        contents = read_gltf(path, fps=fps, with_motions=with_motions)
     humanoid = dict(getattr(contents, "humanoid", {}))  # the VRM humanoid bone map (glTF only)
     return fmt, contents.character, list(contents.motions), list(contents.notes), humanoid
 
@@ -136,7 +136,7 @@ def load_character(
         fmt, notes, vrm = "builtin", list[str](), dict[str, str]()
     else:
         path = Path(path_or_builtin)
-        fmt, maybe, _, notes, vrm = _read_any(path, None)
+        fmt, maybe, _, notes, vrm = _read_any(path, None, with_motions=False)  # a target's clips are not used
         if fmt == "bvh" or maybe is None:
             raise InvalidFileError("a target character must be a skinned mesh (glTF/GLB or FBX with a skin)", label)
         character = maybe

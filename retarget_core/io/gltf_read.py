@@ -959,10 +959,11 @@ def load_gltf_data(path: str | Path, notes: list[str] | None = None) -> GltfData
     return GltfData(doc, bin_chunk, max_elements=settings.max_accessor_elements, label=label)
 
 
-def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
+def read_gltf(path: str | Path, *, fps: float | None = None, with_motions: bool = True) -> GltfContents:
     """Read a .glb or .gltf file: its skinned mesh as one Character (or None) and each animation as a Motion,
     all baked to world space in metres on one skeleton. ``fps``: sampling rate of the motions (default: inferred
-    from the keyframes). Raises InvalidFileError (or a subclass) for malformed, hostile or over-limit files."""
+    from the keyframes); ``with_motions=False``: the animations are checked but not baked (a target character's
+    clips are not used). Raises InvalidFileError (or a subclass) for malformed, hostile or over-limit files."""
     settings = get_settings()
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, not {fps!r}")
@@ -1000,7 +1001,7 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
             f"{path.name} has no skin: its meshes are not a character (a target character must be a skinned mesh)"
         )
     motions = []
-    for name, channels in animations:
+    for name, channels in animations if with_motions else []:
         motion = _build_motion(data, nodes, skeleton, skeleton_nodes, name, channels, fps, notes)
         if motion is not None:
             motions.append(motion)
@@ -1011,7 +1012,7 @@ def read_gltf(path: str | Path, *, fps: float | None = None) -> GltfContents:
 
 def read_gltf_character(path: str | Path) -> Character:
     """The skinned character of a .glb/.gltf file; InvalidFileError when the file has none."""
-    contents = read_gltf(path)
+    contents = read_gltf(path, with_motions=False)
     if contents.character is None:
         name = Path(path).name
         raise InvalidFileError(f"{name} has no skin: a target character must be a skinned mesh", str(path))
