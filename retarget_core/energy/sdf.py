@@ -183,7 +183,7 @@ def geodesic_ramp(geodesic: np.ndarray, dead_zone: float, ramp: float) -> np.nda
 
 
 def build_part_sdf(character: Character, parts: BodyParts, params: SDFParams | None = None) -> PartSDF:
-    """Precompute the grids of every segment of ``character`` (seconds for a 13k-vertex body)."""
+    """Precompute the grids of every segment of ``character`` (the slow part of a body's first job; cached by :mod:`retarget_core.body_cache`)."""
     params = params or SDFParams()
     height = character.height
     s = height / REFERENCE_HEIGHT_M

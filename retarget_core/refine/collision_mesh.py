@@ -4,8 +4,8 @@ and a differentiable depth for them: the collision stage's complement to the rig
 Why: the part SDFs are rigid grids in each segment's rest frame. Near the armpit the torso's skin is skinned
 partly to the arm (weights of Spine1, Spine2, Shoulder and Arm mixed), so when an arm hangs at the side of a
 bulky body the posed torso surface bulges out with it and holds upper-arm vertices 1-3 cm deep, 7-14 cm from
-any part seam, while the rigid Spine grids see them outside (measured on held-out bulky, heavy and tall
-bodies: most of the frames the judge counts deeper than 1 cm after the stage). Here the posed closed parts of
+any part seam, while the rigid Spine grids see them outside (on bulky, heavy and tall bodies, most of the frames
+the judge counts deeper than 1 cm after the stage without this test). Here the posed closed parts of
 :mod:`retarget_core.metrics.acceptance_body` are tested directly (libigl: winding number and closest
 triangle), and each (frame, arm vertex, triangle) found is given the plane distance to its posed triangle,
 which the optimiser can differentiate.

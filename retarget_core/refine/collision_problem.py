@@ -71,7 +71,7 @@ class Ground:
 def ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: CollisionParams, scale: float) -> Ground:
     """The hands' and feet's floor points (:class:`Ground`) on the input ``rot_in (F, J, 4)``, ``trans (F, J, 3)``.
     The copy may put a hand through the floor (a bend to the floor on shorter legs), and the end-effector pull
-    toward the source's hips-relative positions can too (measured: 5-10 cm on the short held-out body, 002_06)."""
+    toward the source's hips-relative positions can too (on shorter bodies than the source's)."""
     segs = [s for n in GROUND_SEGMENTS if (s := ctx.parts.find(n)) is not None]
     if not segs:
         e = torch.zeros(0, dtype=torch.long)
