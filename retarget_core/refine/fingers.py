@@ -16,8 +16,8 @@ and turns finger joints only, and only where finger vertices are inside another 
    takes the finger to the least depth any candidate inside the joint's range reaches, plus ``tolerance_m``. Per
    finger and run of such frames one ray is kept (the one whose worst frame needs the least turn), so the finger
    does not flip between solutions from frame to frame; the turn along it is eased in and out over
-   ``ease_seconds`` (a running maximum, then a binomial average: never less than a frame needs, never beyond the
-   joint's range). The segments beyond follow (their local rotations are kept), so a knuckle that lifts the whole
+   ``ease_seconds`` each side (a running maximum, then a binomial average: never less than a frame needs, never
+   beyond the joint's range on the frames measured). The segments beyond follow (their local rotations are kept), so a knuckle that lifts the whole
    finger leaves nothing for the next joint. Palm, wrist and body do not move: the palm's contact is what the
    contact stages made it.
 
@@ -77,7 +77,7 @@ class FingerParams:
     step_deg: float = 2.5
     directions: int = 12
     # Turns are eased in and out over this long each side of the frames that need them (and never drop between).
-    ease_seconds: float = 0.1
+    ease_seconds: float = 0.2
     # Frames measured at once (each carries every candidate: memory is candidates x frames x finger vertices).
     frame_chunk: int = 8
 
@@ -424,6 +424,11 @@ def choose(found: Needs, frames: Tensor, gap: int) -> tuple[Tensor, Tensor]:
     return ray, torch.where(torch.isinf(clear), least, clear)
 
 
+def ease_frames(params: FingerParams, fps: float) -> int:
+    """Half-width of the running maximum and of the average that ease a turn: together ``ease_seconds``."""
+    return max(1, round(0.5 * params.ease_seconds * fps))
+
+
 def dilate_smooth(x: Tensor, half: int) -> Tensor:
     """``x (F, C)`` dilated (a maximum over ``half`` frames each side), then averaged by a binomial kernel of the same
     half-width: smooth in time and never below ``x``."""
@@ -453,7 +458,7 @@ def solve_level(ctx: RefineContext, fv: FingerVertices, chains: list[FingerChain
     parts = [needs(ctx, fv, chains, level_pose(ctx, chains, level, local[f], trans[f], rows), cand, tol)
              for f in torch.split(frames, params.frame_chunk)]  # fmt: skip
     found = Needs(*(torch.cat([getattr(p, k) for p in parts], 1) for k in ("clear", "least", "cap")))
-    half = round(params.ease_seconds * motion.fps)
+    half = ease_frames(params, motion.fps)
     ray, radius = choose(found, frames, 2 * half)
     full = local.new_zeros(local.shape[0], len(chains))
     full[frames] = radius
@@ -499,9 +504,7 @@ def clear_fingers(ctx: RefineContext, motion: Motion, params: FingerParams) -> t
     if not bool(deep.any()):
         return local, report
     # Later joints and the final check look only where a turn can reach: the sinking frames and their easing.
-    near = torch.nonzero(
-        dilate_smooth(deep[:, None].to(local.dtype), 2 * round(params.ease_seconds * motion.fps))[:, 0] > 0
-    )
+    near = torch.nonzero(dilate_smooth(deep[:, None].to(local.dtype), 2 * ease_frames(params, motion.fps))[:, 0] > 0)
     near = near.flatten()
     levels = max(len(c.joints) for c in chains)
     turns = local.new_zeros(local.shape[0], levels, len(chains), 2)

@@ -1,6 +1,7 @@
 """A hand resting palm-down on a thigh, fingers on it: through the default chain (network + ESO, collisions,
-foot lock) the result's fingers do not sink into the thigh, the palm keeps its contact, and where the hand is
-away from the body the finger rotations are the copy's.
+foot lock, then finger clearance) the result's fingers do not sink into the thigh, the palm keeps its contact, and
+where the hand is away from the body the finger rotations are the copy's. Without the finger clearance stage the
+thumb sinks: the chain before it puts the bulky target's palm on the thigh and the thumb's base below its surface.
 
 The source: a real MakeHuman body (female_skinny) on the Mixamo rig with its fingers (MPFB2, CC0) sits, its left
 hand placed palm-down on its left thigh by two-bone IK, fingers slightly curled and just touching the thigh;
@@ -12,7 +13,7 @@ The target: a bulky MakeHuman body on the Unreal-style rig. Measured with the in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ from torch import Tensor
 
 from retarget_core import kinematics
 from retarget_core import rotations as rot
-from retarget_core.canonical import JointMapping
+from retarget_core.canonical import FINGERS, JointMapping
 from retarget_core.character import Character
 from retarget_core.context import StageOutcome
 from retarget_core.io.gltf_write import write_glb
@@ -33,6 +34,7 @@ from retarget_core.motion import Motion
 from retarget_core.options import RetargetOptions
 from retarget_core.pipeline import prepare, refine, refine_context
 from retarget_core.refine import load_stage
+from retarget_core.refine.fingers import finger_chains
 from retarget_core.refine.two_bone_ik import two_bone_ik
 from retarget_core.retargeted import Prepared
 from retarget_core.skeleton import Skeleton
@@ -260,6 +262,16 @@ def finger_joints(mapping: JointMapping, side: str = "") -> list[int]:
 
 def test_the_stage_runs_last_in_the_default_chain() -> None:
     assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and RetargetOptions().stages.enabled("fingers")
+
+
+def test_the_stage_finds_every_finger_and_no_fingers_where_a_rig_has_none() -> None:
+    sk = finger_body("male_bulky", "game_engine").skeleton
+    chains = finger_chains(sk, map_joints(sk))
+    assert [(c.side, c.finger, len(c.joints)) for c in chains] == [
+        (s, f, 3) for s in ("Left", "Right") for f in FINGERS
+    ]
+    assert [float(c.spread.max()) > 0 for c in chains] == [c.finger == "Thumb" for c in chains]  # the CMC alone
+    assert finger_chains(sk, replace(map_joints(sk), extras={})) == []  # a rig mapped without fingers
 
 
 def test_the_source_rests_its_palm_on_the_thigh_fingers_on_it(job: Job) -> None:
