@@ -40,11 +40,11 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("learned_collisions", "Learned collision resolver", "paper 2's per-limb network turns limbs out of the body",
               "retarget_core.refine.collision_model", 0.05, default=False),
     StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept",
-              "retarget_core.refine.collisions", 0.19),
+              "retarget_core.refine.collisions", 0.2),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
               "retarget_core.refine.foot_lock", 0.03),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
-              "retarget_core.refine.fingers", 0.01),
+              "retarget_core.refine.fingers", 0.01, default=False),
 )  # fmt: skip
 """Why each default stands: docs/results.md (the held-out evaluation of the default chain and its variants)."""
 

@@ -261,7 +261,8 @@ def finger_joints(mapping: JointMapping, side: str = "") -> list[int]:
 
 
 def test_the_stage_runs_last_in_the_default_chain() -> None:
-    assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and RetargetOptions().stages.enabled("fingers")
+    # Off by default until its cost on real rigs is fixed (docs/mapping.md).
+    assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and not RetargetOptions().stages.enabled("fingers")
 
 
 def test_the_stage_finds_every_finger_and_no_fingers_where_a_rig_has_none() -> None:

@@ -176,19 +176,7 @@ def test_copy_fingers_follow_the_source_on_every_frame(rig: Rig, tmp_path_factor
     assert {e: round(float(g.max()), 2) for e, g in gaps.items() if g.max() > FINGER_FOLLOW_DEG} == {}
 
 
-CLEARED_WITCH = pytest.param(
-    WITCH,
-    marks=pytest.mark.xfail(
-        strict=True,
-        reason="the finger clearance stage (refine/fingers.py) turns the Witch's fingers by up to 45 degrees on 29 "
-        "of 30 frames of this walk for a finger depth of 0.318 -> 0.307 cm; the right index then departs from the "
-        "source by 20 degrees on the median frame",
-    ),
-    id=WITCH.file,
-)
-
-
-@pytest.mark.parametrize("rig", [CRYPTOVOXELS, CLEARED_WITCH], ids=lambda r: getattr(r, "file", None))
+@pytest.mark.parametrize("rig", [CRYPTOVOXELS, WITCH], ids=lambda r: r.file)
 def test_result_fingers_follow_the_source(rig: Rig, tmp_path_factory: pytest.TempPathFactory) -> None:
     """The result GLB: each finger follows the source on most frames (a refinement stage may turn one clear of
     the body where it sinks, issue 21 item 3, so this bounds the median frame)."""
