@@ -130,6 +130,26 @@ def _hips_offset_from_root(target: Skeleton, hips: int, local_r: Tensor, local_t
     return pos[:, hips]
 
 
+def _follow_canonical_parents(target: Skeleton, target_map: JointMapping, local_r: Tensor, local_t: Tensor) -> None:
+    """In place on ``local_t (F, J, 3)``: a mapped joint that hangs under another mapped joint than its canonical
+    parent (a 3ds Max Biped's thighs under ``Bip01 Spine``, its clavicles under ``Bip01 Neck``) keeps its rest
+    offset from the canonical parent, as the rig itself does with per-frame translations (the spine bends without
+    carrying the legs); its rest local translation would swing the legs with the spine."""
+    mapped = set(target_map.joints.values())
+    rest_rot, rest_pos = target.rest_global()
+    for name, j in target_map.joints.items():
+        cp = target_map.joints.get(CANONICAL_PARENT.get(name) or "", -1)
+        ancestors = target.ancestors(j)
+        nearest = next((a for a in ancestors if a in mapped), None)
+        if cp < 0 or cp not in ancestors or nearest == cp:
+            continue
+        w_rot, w_pos = forward_kinematics(target.parents, local_r, local_t)
+        p = target.parents[j]
+        turn = rot.mul(w_rot[:, cp], rot.inv(rest_rot[cp]))  # (F, 4) the canonical parent's turn since rest
+        offset = rot.apply(turn, (rest_pos[j] - rest_pos[cp]).expand_as(w_pos[:, j]))
+        local_t[:, j] = rot.apply(rot.inv(w_rot[:, p]), w_pos[:, cp] + offset - w_pos[:, p])
+
+
 def copy_retarget(
     source: Motion,
     source_map: JointMapping,
@@ -174,6 +194,8 @@ def copy_retarget(
             local_r[:, j] = rot.normalize(rot.mul(rot.inv(parent_world), desired[j]))
         else:
             world.append(rot.mul(parent_world, local_r[:, j]))
+
+    _follow_canonical_parents(target, target_map, local_r, local_t)
 
     # Root motion: source hips scaled by leg length ratio, placed through the target's root joint(s).
     scale = leg_length(target, target_map) / max(leg_length(source.skeleton, source_map), 1e-6)

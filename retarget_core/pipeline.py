@@ -28,12 +28,11 @@ from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.measure import SourceContactResult, carry_contacts, detect_source_contacts, torch_threads
-from retarget_core.metrics.feet_acceptance import planted_feet
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.motion import Motion
 from retarget_core.normalize import NormalizationReport
 from retarget_core.options import RetargetOptions
-from retarget_core.placement import place_on_floor, planted_frames, stand_on_own_feet
+from retarget_core.placement import before_labels, place_on_floor, planted_as_judged, stand_on_own_feet
 from retarget_core.refine import RefineContext, refinement_stages, resolve_device
 from retarget_core.resample import resample, select_frames
 from retarget_core.retargeted import Prepared, Retargeted
@@ -149,12 +148,12 @@ def prepare(
             found = _no_self_contacts(found)
         constraints = carry_contacts(found.self_contacts, body.character, body.mapping, target.character, target.mapping)
         target_feet = FootContacts(found.feet.labels, [target.mapping.joints.get(c, -1) for _, c in FOOT_JOINTS])
-        source_planted = planted_feet(body.character, body.mapping, _as_in_file(source, body, source_view))
+        source_planted = planted_as_judged(body.character, body.mapping, _as_in_file(source, body, source_view))
     with clock.stage("copy"):
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
         )
-        before = place_on_floor(target.character, target.mapping, before, planted_frames(found.feet))
+        before = place_on_floor(target.character, target.mapping, before, before_labels(source_planted, found.feet))
     with clock.stage("body"):
         assets, cached = body_assets(target.character, target.mapping)
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
