@@ -214,6 +214,14 @@ def evaluate(
         typer.Option(help="Run the fixed held-out split (retarget_core/data/heldout.json): its clips from this "
                      "folder (the shared motions/cmu) on its generated bodies, sources as GLBs on male_average"),
     ] = None,
+    split_name: Annotated[
+        str | None,
+        typer.Option("--split", help="Run a fixed case list instead: 'hard' (retarget_core/data/heldout_hard.json: whole clips "
+                     "of the hard kinds on the held-out, extreme and real bodies, sources as GLBs on male_average)"),
+    ] = None,
+    shared_data: Annotated[
+        Path, typer.Option(help="The shared data folder the --split files are read from")
+    ] = Path("../shared/data"),
     out: Annotated[Path, typer.Option("-o", "--out", help="Folder for eval.json and eval.md")] = Path("out/eval"),
     method: Annotated[
         list[str] | None,
@@ -243,29 +251,55 @@ def evaluate(
         method = list(dict.fromkeys([*ABLATION, *(method or [])]))
 
     groups: dict[str, str] | None = None
-    if heldout is not None:
+    cases: list[tuple[Path, str | Path]] | None = None
+    files: list[Path] = []
+    bodies: list[str | Path] = []
+    if split_name is not None:
+        cases, groups = _split_cases(split_name, shared_data)
+        source_glb_body = source_glb_body or _heldout_source_body()
+    elif heldout is not None:
         from retarget_core import heldout as split
 
         files = split.clip_paths(heldout)
         paths = split.body_paths()
-        bodies: list[str | Path] = list(paths)
+        bodies = list(paths)
         groups = {p.stem: p.stem.split("-")[0].removeprefix("heldout_") for p in paths}  # heavy, bulky, ...
         source_glb_body = source_glb_body or split.SOURCE_BODY
     else:
         files = _expand(motions or [], (".bvh", ".glb", ".gltf", ".fbx"))
         bodies = [b for b in body or [] if b.startswith("builtin:")]
         bodies += _expand([Path(b) for b in body or [] if not b.startswith("builtin:")], (".glb", ".gltf", ".fbx"))
-    if not files or not bodies:
-        _fail("no motion files or no bodies given (or use --heldout MOTIONS_DIR)")
+    if cases is None and (not files or not bodies):
+        _fail("no motion files or no bodies given (or use --heldout MOTIONS_DIR or --split hard)")
     try:
         table = run_evaluation(
             files, bodies, method or None, out, max_frames, fps=fps, log=console.print, source_character=source_body,
-            source_glb_body=source_glb_body, body_groups=groups, jobs=jobs,
+            source_glb_body=source_glb_body, body_groups=groups, jobs=jobs, cases=cases,
         )  # fmt: skip
     except (RetargetError, ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     print(table.to_markdown())
     console.print(f"wrote {out / 'eval.json'} and {out / 'eval.md'}")
+
+
+def _split_cases(split: str, shared_data: Path) -> tuple[list[tuple[Path, str | Path]], dict[str, str]]:
+    """The named split's fixed cases (clip file, body file) and its body groups; exits on a missing file."""
+    if split != "hard":
+        _fail(f"unknown split {split!r}; available: hard")
+    from retarget_core import heldout_hard
+
+    try:
+        cases: list[tuple[Path, str | Path]] = list(heldout_hard.split_cases(shared_data))
+        return cases, heldout_hard.body_groups(shared_data)
+    except FileNotFoundError as exc:
+        _fail(f"{exc} (give the shared data folder with --shared-data)")
+        raise
+
+
+def _heldout_source_body() -> str:
+    from retarget_core.heldout import SOURCE_BODY
+
+    return SOURCE_BODY
 
 
 train_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Train the learned stages.")

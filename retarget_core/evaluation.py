@@ -181,6 +181,8 @@ class EvalTable(BaseModel):
         out += _group_table(self.groups, ours, self.labels, with_targets=False)
         out += ["", "## By body, all clips", ""]
         out += _group_table(self.per_body, acc, self.labels, with_targets=True)
+        if self.settings.get("per_case"):
+            out += ["", "## Every case (ratios to the copy of the same case)", ""] + case_table(self.rows, self.methods)
         out += ["", "## Bodies", "", "| body | height m | bulk index | group |", "|---|---|---|---|"]
         out += [f"| {b.name} | {b.height_m:.3f} | {b.bulk_index:.4f} | {b.group} |" for b in self.bodies]
         out += ["", "## Clips", "", "| clip | frames | fps | contact frames | group | main contacts (frames) |",
@@ -192,6 +194,39 @@ class EvalTable(BaseModel):
             for c in self.clips
         ]
         return "\n".join(out) + "\n"
+
+
+CASE_COLUMNS: tuple[tuple[str, str, bool], ...] = (
+    ("pen_percent", "pen %v x", True), ("frames_over_1cm_percent", ">1cm x", True), ("head_percent", "head x", True),
+    ("end_effector_error_cm", "EE x", True), ("contact_preservation", "contact pres.", False),
+    ("false_contacts", "false contacts", False), ("jerk_ratio", "jerk", False), ("float_cm", "float cm", False),
+)  # fmt: skip
+"""The per-case table's columns: (figure, label, tabled as a ratio to the same case's copy)."""
+
+
+def case_table(rows: list[EvalRow], methods: list[str]) -> list[str]:
+    """One line per case and method other than the copy: the targets' figures, whether every target is met and
+    which are missed."""
+    copy = {(r.clip, r.body): r for r in rows if r.method == "copy"}
+    head = "| method | clip | body | " + " | ".join(label for _, label, _ in CASE_COLUMNS) + " | all met | missed |"
+    lines = [head, "|" + "---|" * (5 + len(CASE_COLUMNS))]
+    for r in rows:
+        if r.method == "copy" or r.method not in methods:
+            continue
+        base = copy.get((r.clip, r.body))
+        cells = [_fmt(_case_value(r, base, name, ratio)) for name, _, ratio in CASE_COLUMNS]
+        missed = ", ".join(k for k, ok in r.targets_met.items() if not ok)
+        met = "yes" if r.targets_met and all(r.targets_met.values()) else "no"
+        lines.append(f"| {r.method} | {r.clip} | {r.body} | " + " | ".join(cells) + f" | {met} | {missed} |")
+    return lines
+
+
+def _case_value(row: EvalRow, copy: EvalRow | None, name: str, ratio: bool) -> float | None:
+    value = row.values.get(name)
+    if not ratio:
+        return value
+    base = copy.values.get(name) if copy is not None else None
+    return round(value / base, 4) if value is not None and base else None
 
 
 def _group_table(groups: list[EvalGroup], cols: list[str], labels: dict[str, str], with_targets: bool) -> list[str]:
@@ -318,8 +353,10 @@ def run_evaluation(
     source_character: str | Path | None = None,
     source_glb_body: str | Path | None = None,
     jobs: int = 1,
+    cases: list[tuple[Path, str | Path]] | None = None,
 ) -> EvalTable:
-    """Run ``methods`` (default: copy) on every motion x body and summarise.
+    """Run ``methods`` (default: copy) on every motion x body, or on the fixed ``cases`` (motion, body), and
+    summarise.
 
     motions: BVH/glTF/FBX files; bodies: character files or ``builtin:<preset>``; ``max_frames``: first frames
     of each clip (after resampling to ``fps``; None: all); ``source_character``: the body performing the source
@@ -329,7 +366,8 @@ def run_evaluation(
     thirds (:func:`bulk_groups`); a clip is a contact clip when at least ``contact_fraction`` of its frames
     have a hand self-contact on the source body. Writes ``eval.json`` and ``eval.md`` into ``out_dir`` when
     given. ``threads``: torch threads during the run (see :data:`MEASURE_THREADS`); ``jobs``: clips evaluated in
-    parallel worker processes (one torch thread each)."""
+    parallel worker processes (one torch thread each). With ``cases`` (``motions`` and ``bodies`` then empty)
+    only those pairs run, each clip once on its bodies, and ``eval.md`` also tables every case."""
     methods = list(methods or ["copy"])
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -337,9 +375,23 @@ def run_evaluation(
     missing = [f"{m} ({METHOD_WEIGHTS[m]})" for m in methods if m in METHOD_WEIGHTS and not METHOD_WEIGHTS[m].is_file()]
     if missing:
         raise ValueError(f"no weights for {', '.join(missing)}: train them with retarget train recurrent --energy ...")
+    if cases is not None and (motions or bodies):
+        raise ValueError("give either motions and bodies or a case list, not both")
+    plan = group_cases(cases) if cases is not None else [(m, list(bodies)) for m in motions]
     with torch_threads(threads):
-        return _run_evaluation(motions, bodies, methods, out_dir, max_frames, fps, contact_fraction, body_groups,
-                               log, source_character, source_glb_body, jobs)  # fmt: skip
+        return _run_evaluation(plan, methods, out_dir, max_frames, fps, contact_fraction, body_groups,
+                               log, source_character, source_glb_body, jobs, per_case=cases is not None)  # fmt: skip
+
+
+def group_cases(cases: list[tuple[Path, str | Path]]) -> list[tuple[Path, list[str | Path]]]:
+    """A case list as (clip, its bodies), clips in order of first appearance; a repeated case raises."""
+    plan: dict[Path, list[str | Path]] = {}
+    for motion, body in cases:
+        bodies = plan.setdefault(Path(motion), [])
+        if body in bodies:
+            raise ValueError(f"case {Path(motion).name} on {body} is listed twice")
+        bodies.append(body)
+    return list(plan.items())
 
 
 def source_as_glb(motion: Path, body: str | Path, out: Path, max_frames: int | None, fps: float | None) -> Path:
@@ -355,13 +407,44 @@ def source_as_glb(motion: Path, body: str | Path, out: Path, max_frames: int | N
     ch, mapping = tgt.character, tgt.mapping
     view = stand_on_own_feet(ch, mapping, copy_retarget(src.motion, src.mapping, ch.skeleton, mapping))
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_glb(ch, view, out, clip_name=src.motion.name)
+    write_glb(ch, view, out, clip_name=Path(motion).stem)  # the file's name, as the table names the clip
     return out
 
 
+def _body_infos(bodies: list[str | Path], body_groups: dict[str, str] | None) -> list[BodyInfo]:
+    """Name, height, bulk index and group of each body (groups: ``body_groups`` or thirds of bulk)."""
+    infos: list[BodyInfo] = []
+    for b in bodies:
+        tc = load_character(b).character
+        info = BodyInfo(name=tc.name, height_m=round(tc.height, 4), bulk_index=round(bulk_index(tc), 5), group="")
+        infos.append(info)
+    for info, group in zip(infos, bulk_groups([i.bulk_index for i in infos]), strict=True):
+        info.group = (body_groups or {}).get(info.name) or group
+    return infos
+
+
+ClipTask = tuple[Path, list[str | Path], list[str], list[str], int | None, float | None, float, str | Path | None]
+"""The arguments of :func:`_evaluate_clip` for one clip: its file, its bodies and their names, the methods, the
+frames, the rate, the contact fraction and the source character."""
+
+
+def _run_tasks(tasks: list[ClipTask], jobs: int, say: Callable[[str], None]) -> list[tuple[ClipInfo, list[EvalRow], list[str]]]:  # fmt: skip
+    """:func:`_evaluate_clip` on every task, in ``jobs`` worker processes when more than one."""
+    if jobs > 1 and len(tasks) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+            results = list(pool.map(_evaluate_clip_in_worker, tasks))
+        for _info, _rows, lines in results:
+            for line in lines:
+                say(line)
+        return results
+    return [_evaluate_clip(*t, log=say) for t in tasks]
+
+
 def _run_evaluation(
-    motions: list[Path],
-    bodies: list[str | Path],
+    plan: list[tuple[Path, list[str | Path]]],
     methods: list[str],
     out_dir: Path | None,
     max_frames: int | None,
@@ -372,41 +455,29 @@ def _run_evaluation(
     source_character: str | Path | None,
     source_glb_body: str | Path | None,
     jobs: int,
+    per_case: bool = False,
 ) -> EvalTable:
     import tempfile
 
     started = time.perf_counter()
     order = ["copy"] + [m for m in methods if m != "copy"]
     say = log or (lambda _m: None)
-    infos: list[BodyInfo] = []
-    for b in bodies:
-        tc = load_character(b).character
-        infos.append(BodyInfo(name=tc.name, height_m=round(tc.height, 4), bulk_index=round(bulk_index(tc), 5), group=""))
-    for info, group in zip(infos, bulk_groups([i.bulk_index for i in infos]), strict=True):
-        info.group = (body_groups or {}).get(info.name) or group
+    bodies = list(dict.fromkeys(b for _, clip_bodies in plan for b in clip_bodies))
+    infos = _body_infos(bodies, body_groups)
+    name_of = {b: i.name for b, i in zip(bodies, infos, strict=True)}
 
     rows: list[EvalRow] = []
     clips: list[ClipInfo] = []
     scratch = tempfile.TemporaryDirectory(prefix="retarget-eval-")
-    tasks = []
-    for path in motions:
+    tasks: list[ClipTask] = []
+    for path, clip_bodies in plan:
         if source_glb_body is not None:
             path = source_as_glb(path, source_glb_body, Path(scratch.name) / f"{path.stem}.glb", max_frames, fps)
-        tasks.append((path, bodies, [i.name for i in infos], order, max_frames, fps, contact_fraction, source_character))
-    if jobs > 1 and len(tasks) > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-            results = list(pool.map(_evaluate_clip_in_worker, tasks))
-    else:
-        results = [_evaluate_clip(*t, log=say) for t in tasks]
-    for clip_info, clip_rows, lines in results:
+        names = [name_of[b] for b in clip_bodies]
+        tasks.append((path, clip_bodies, names, order, max_frames, fps, contact_fraction, source_character))
+    for clip_info, clip_rows, _lines in _run_tasks(tasks, jobs, say):
         clips.append(clip_info)
         rows += clip_rows
-        if jobs > 1:
-            for line in lines:
-                say(line)
     scratch.cleanup()
 
     body_group = {i.name: i.group for i in infos}
@@ -425,7 +496,8 @@ def _run_evaluation(
         seconds=round(time.perf_counter() - started, 2),
         settings={"max_frames": max_frames, "fps": fps, "contact_fraction": contact_fraction,
                   "source_glb_body": str(source_glb_body) if source_glb_body else None, "jobs": jobs,
-                  "methods": {m: list(METHODS[m]) for m in order}},  # fmt: skip
+                  "methods": {m: list(METHODS[m]) for m in order}, "per_case": per_case,
+                  "cases": len(rows) // len(order)},  # fmt: skip
     )
     say(table.to_markdown())
     if out_dir is not None:
@@ -540,6 +612,8 @@ __all__ = [
     "EvalTable",
     "bulk_groups",
     "bulk_index",
+    "case_table",
+    "group_cases",
     "group_rows",
     "judged_source",
     "method_options",
