@@ -412,11 +412,10 @@ class _Block:
     upper: Tensor = field(default_factory=lambda: torch.zeros(0))
 
 
-def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: float, params: HandDistanceParams,
-                     need: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: float, params: HandDistanceParams
+                     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
     """One block of frames ``x (B, V, 3)`` (float64): distance, inside ``(B, 2, P)``, pairs ``(B, 2, P, K, 2)``,
-    pair distances ``(B, 2, P, K)``; ``need (B, 2, P)``: the only (frame, hand, part) groups measured (None:
-    every measured pair of ``geom``)."""
+    pair distances ``(B, 2, P, K)``."""
     bsz, n_h, n_p, k_pairs = x.shape[0], len(geom.hands), len(geom.parts), params.pairs
     shape = (bsz, n_h, n_p)
     n_g = bsz * n_h * n_p
@@ -424,7 +423,7 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     centres = torch.zeros(bsz, n_caps, 3, dtype=x.dtype).index_add_(1, geom.ring_cap, x[:, geom.ring_vertex])
     ext = torch.cat([x, centres / geom.ring_count.clamp_min(1).to(x.dtype)[None, :, None]], dim=1)
     blk = _Block(geom, x, ext, n_g, cutoff, slack, params, *_flat_sphere(ext, *geom.tri_chunk_members))
-    near = _chunks_near_hands(blk, need)
+    near = _chunks_near_hands(blk)
     if near is None:
         dist_g = torch.full((n_g,), float("inf"), dtype=x.dtype)
         inside_g = torch.zeros(n_g, dtype=torch.bool)
@@ -437,17 +436,15 @@ def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: fl
     return dist_g.view(shape), inside_g.view(shape), pairs.view(*shape, k_pairs, 2), pair_d.view(*shape, k_pairs)
 
 
-def _chunks_near_hands(blk: _Block, need: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor] | None:
+def _chunks_near_hands(blk: _Block) -> tuple[Tensor, Tensor, Tensor] | None:
     """Level A: (frame, hand, triangle chunk) ``(N,)`` each whose chunk sphere reaches the hand's box grown by the
-    cutoff, of the groups in ``need (B, 2, P)`` (None: all measured); None when there are none."""
+    cutoff; None when there are none."""
     x, geom = blk.x, blk.geom
     boxes = [(x[:, v].amin(1), x[:, v].amax(1)) if len(v) else (x[:, 0], x[:, 0]) for v in geom.hand_vertices]
     lo, hi = torch.stack([bx[0] for bx in boxes], 1), torch.stack([bx[1] for bx in boxes], 1)  # (B, 2, 3)
     clamped = torch.maximum(torch.minimum(blk.tc_c[:, None], hi[:, :, None]), lo[:, :, None])
     near = ((blk.tc_c[:, None] - clamped).norm(dim=-1) - blk.tc_r[:, None] <= blk.cutoff)
     near &= geom.measured[:, geom.tri_chunk_part][None]
-    if need is not None:
-        near &= need.index_select(2, geom.tri_chunk_part)
     b, h, q = near.nonzero(as_tuple=True)
     return None if len(b) == 0 else (b, h, q)
 
@@ -583,16 +580,11 @@ def hand_part_distances(
     params: HandDistanceParams | None = None,
     geometry: HandPartGeometry | None = None,
     height: float | None = None,
-    need: Tensor | None = None,
 ) -> HandPartDistances:
     """Distances ``(F, 2, P)`` from each hand to each part of the posed body ``posed (F, V, 3)`` (see the module
     doc). ``character`` gives the rest pose and height; without it, give ``height`` (the first frame then lays
-    out the chunks). ``geometry``: a :func:`hand_part_geometry` of this body to reuse. ``need (F, 2, P)`` bool:
-    measure only these (frame, hand, part) groups (the others read ``inf``; each group's result does not depend
-    on which others are measured)."""
+    out the chunks). ``geometry``: a :func:`hand_part_geometry` of this body to reuse."""
     params = params or HandDistanceParams()
-    if need is not None and need.shape[:1] != posed.shape[:1]:
-        raise ValueError(f"need has {need.shape[0]} frames, the posed body {posed.shape[0]}")
     if character is not None:
         rest, height = character.vertices, height or character.height
     else:
@@ -611,10 +603,7 @@ def hand_part_distances(
         for s0 in range(0, f_n, params.frames_per_block):
             s1 = min(f_n, s0 + params.frames_per_block)
             x = posed[s0:s1].detach().to(torch.float64)
-            blk_need = None if need is None else need[s0:s1]
-            dist[s0:s1], inside[s0:s1], pairs[s0:s1], pair_d[s0:s1] = _block_distances(
-                geom, x, cutoff, slack, params, blk_need
-            )
+            dist[s0:s1], inside[s0:s1], pairs[s0:s1], pair_d[s0:s1] = _block_distances(geom, x, cutoff, slack, params)
     return HandPartDistances(geom.hands, geom.parts, dist, inside, pairs, pair_d, geom.measured.clone(), cutoff)
 
 

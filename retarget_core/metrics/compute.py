@@ -137,29 +137,24 @@ def measure_clip(
     source_hand_distances: HandPartDistances | None = None,
     reuse: Reuse | None = None,
     cull_hands: bool = True,
-    depth_only: bool = False,
 ) -> ClipMeasures:
     """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame.
     ``source_hand_distances``: the source's hand-to-part distances (``SelfContacts.distances``), for the false
     contacts (docs/metrics.md "Hand contacts"). ``reuse``: measures of another motion on this character (same
     ground, contacts and source): frames posed exactly as there are copied, not measured. ``cull_hands``: compute
     exact hand-to-part distances only where the penetration queries found a hand near a part (False: on every
-    frame, the reference the culled path is tested against). ``depth_only``: the vertex depths, volume and lowest
-    vertex only (the SDF sampled where a vertex may be inside; limb distances read NaN, no contacts)."""
+    frame, the reference the culled path is tested against)."""
     params = params or MetricParams()
-    if depth_only and (contacts is not None or source_hand_distances is not None):
-        raise ValueError("depth_only measures neither contacts nor hand distances")
     if motion.skeleton.num_joints != character.skeleton.num_joints:
         raise ValueError("the motion does not animate this character's skeleton")
     parts = sdf.parts
     f_n, v_n = motion.num_frames, character.num_vertices
     names = [c for c in CANONICAL_JOINTS if c in mapping.joints]
     idx = torch.tensor([mapping.joints[c] for c in names])
-    out = _FrameMeasures(f_n, v_n, parts.body, depth_only)
+    out = _FrameMeasures(f_n, v_n, parts.body)
     hands = None
     if (contacts is not None and contacts.count) or source_hand_distances is not None:
         hands = ContactHandMeter(character, parts, contacts, source_hand_distances, f_n)
-        hands.exact_everywhere = not cull_hands
     same = unchanged_frames(motion, reuse.motion if reuse is not None else None)
     with torch.no_grad():
         grot, gpos = motion.global_transforms()
@@ -183,9 +178,8 @@ def measure_clip(
 class _FrameMeasures:
     """The per-frame arrays of :class:`ClipMeasures`, filled chunk by chunk of frames."""
 
-    def __init__(self, f_n: int, v_n: int, body: Tensor | None, depth_only: bool = False) -> None:
+    def __init__(self, f_n: int, v_n: int, body: Tensor | None) -> None:
         self.f_n = f_n
-        self.depth_only = depth_only  # sample where a vertex may be inside only; limb distances NaN
         self.depth: list[VertexDepths] = []  # per chunk
         self.body = None if body is None else torch.nonzero(body).flatten()  # only these are posed and measured
         self.volume = torch.zeros(f_n)
@@ -199,17 +193,14 @@ class _FrameMeasures:
         mats = segment_matrices(character, sdf.parts, grot, gpos)
         if self.body is None:
             verts = character.pose_vertices(grot, gpos)
-            samples = sample_pairs(sdf, verts, mats, inside_only=self.depth_only)
+            samples = sample_pairs(sdf, verts, mats)
         else:  # accessory meshes: the body vertices only
             verts = character.pose_vertex_subset(self.body, grot, gpos)
-            samples = sample_pairs(sdf, verts, mats, vertices=self.body, inside_only=self.depth_only)
+            samples = sample_pairs(sdf, verts, mats, vertices=self.body)
         d = vertex_depths(sdf, samples, c)
         self.depth.append(VertexDepths.from_dense(d, frames, self.f_n))
         self.volume[frames] = (d * sdf.vertex_area).sum(-1)
-        if self.depth_only:  # samples beyond the blend width are missing: no limb distance to read
-            self.limb[frames] = float("nan")
-        else:
-            self.limb[frames] = limb_distances(sdf.parts, distance_matrix(sdf, samples, c))
+        self.limb[frames] = limb_distances(sdf.parts, distance_matrix(sdf, samples, c))
         self.lowest[frames] = verts[..., 1].amin(-1)
         if hands is not None:
             cand = hand_part_candidates(sdf.parts, samples, c) if cull_hands else None
@@ -368,8 +359,7 @@ class ContactHandMeter:
         self.frame_far = torch.zeros(frames, dtype=torch.long)
         self.frame_false = torch.zeros(frames, dtype=torch.long)
         self.false_m = FALSE_CONTACT_M * character.height / REFERENCE_HEIGHT_M
-        self._by_part: dict[tuple[int, ...], HandPartGeometry] = {}
-        self.exact_everywhere = False  # True: every pair of the frames that need any, on the whole body
+        self._by_part: dict[int, HandPartGeometry] = {}
 
     def measure(self, verts: Tensor, frames: Tensor, candidates: Tensor | None = None) -> None:
         """``verts (C, V, 3)``: the posed frames ``frames (C,)`` (increasing). ``candidates (C, 2, P)``: the
@@ -390,37 +380,30 @@ class ContactHandMeter:
         self.distance[sel] = dist[row, self.hand[sel], self.part[sel]].float()
 
     def _distances(self, verts: Tensor, need: Tensor) -> Tensor:
-        """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` (inf elsewhere), in one query over
-        the frames that need any, holding the needed parts' triangles only (``exact_everywhere``: every pair of
-        those frames on the whole body, the reference)."""
+        """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` (inf elsewhere), part by part on
+        the frames that need it, each query holding that part's triangles only."""
         dist = torch.full(need.shape, float("inf"), dtype=torch.float64)
-        rows = torch.nonzero(need.flatten(1).any(1)).flatten()
-        if len(rows) == 0:
-            return dist
-        if self.exact_everywhere:
-            found = hand_part_distances(self.character, self.parts, verts[rows], geometry=self.geometry)
-            dist[rows] = found.distance
-            return dist
-        parts = tuple(torch.nonzero(need.any(dim=(0, 1))).flatten().tolist())
-        found = hand_part_distances(self.character, self.parts, verts.index_select(0, rows),
-                                    geometry=self._parts_geometry(parts), need=need.index_select(0, rows))  # fmt: skip
-        dist[rows] = found.distance
+        for p in torch.nonzero(need.any(dim=(0, 1))).flatten().tolist():
+            rows = torch.nonzero(need[:, :, p].any(1)).flatten()
+            geom = self._part_geometry(p)
+            found = hand_part_distances(self.character, self.parts, verts[rows], geometry=geom)
+            dist[rows, :, p] = found.distance[:, :, p]
         return dist
 
-    def _parts_geometry(self, parts: tuple[int, ...]) -> HandPartGeometry:
-        """The hand-to-part geometry restricted to the triangle chunks of ``parts`` (the same distances for those
-        parts; the per-frame bounds of the other parts' triangles are not computed)."""
-        if parts not in self._by_part:
+    def _part_geometry(self, p: int) -> HandPartGeometry:
+        """The hand-to-part geometry restricted to part ``p``'s triangle chunks (the same distances for ``p``;
+        the per-frame bounds of the other parts' triangles are not computed)."""
+        if p not in self._by_part:
             g = self.geometry
-            keep = torch.nonzero(torch.isin(g.tri_chunk_part, torch.tensor(parts))).flatten()
+            keep = torch.nonzero(g.tri_chunk_part == p).flatten()
             vertices = g.tri_chunk_vertices.index_select(0, keep)
             measured = torch.zeros_like(g.measured)
-            measured[:, list(parts)] = g.measured[:, list(parts)]
-            self._by_part[parts] = replace(
+            measured[:, p] = g.measured[:, p]
+            self._by_part[p] = replace(
                 g, tri_chunks=g.tri_chunks.index_select(0, keep), tri_chunk_part=g.tri_chunk_part.index_select(0, keep),
                 tri_chunk_vertices=vertices, tri_chunk_members=_memberships(vertices), measured=measured,
             )  # fmt: skip
-        return self._by_part[parts]
+        return self._by_part[p]
 
     def copy(self, frames: Tensor, other: ContactHandMeasures) -> None:
         """Take the results of ``frames (C,)`` from ``other``, measured on a motion posed the same there."""

@@ -435,25 +435,3 @@ def test_hand_part_distances_match_brute_force(average, placed) -> None:
     got = hand_part_distances(None, parts, posed, geometry=geom, height=ch.height)
     near = sum(_check_against_brute_force(geom, posed[f], got, f) for f in range(len(posed)))
     assert near >= 4 and bool(got.inside[1, 0].any())  # the cheek frame: the left hand sunk into the head
-
-
-def test_hand_part_distances_of_needed_groups_equal_the_full_query(average, placed) -> None:
-    """Measuring only some (frame, hand, part) groups (the metrics' need mask) gives those groups exactly what the
-    query of every group gives, and ``inf`` to the others."""
-    from retarget_core.contacts.hand_distance import hand_part_geometry
-
-    ch, _, parts = average
-    posed = torch.stack([placed["hip"], placed["cheek"], placed["slide"][0], placed["slide"][3], placed["rest"]])
-    geom = hand_part_geometry(parts, ch.vertices, ch.height)
-    full = hand_part_distances(None, parts, posed, geometry=geom, height=ch.height)
-    need = torch.zeros(full.distance.shape, dtype=torch.bool)
-    need[0, 0] = need[1, :, 0] = need[3, 1, 1:] = True
-    need &= geom.measured[None]
-    some = hand_part_distances(None, parts, posed, geometry=geom, height=ch.height, need=need)
-    assert bool(torch.isfinite(full.distance[need]).any()), "some needed group must be near"
-    assert torch.equal(some.distance[need], full.distance[need])
-    assert torch.equal(some.inside[need], full.inside[need])
-    assert torch.equal(some.pair_distance[need], full.pair_distance[need])
-    assert bool(torch.isinf(some.distance[~need]).all())
-    with pytest.raises(ValueError, match="frames"):
-        hand_part_distances(None, parts, posed, geometry=geom, height=ch.height, need=need[:2])

@@ -584,27 +584,14 @@ def test_fast_metrics_equal_the_full_measurement(shared_data: Path) -> None:
     ), "the perturbation must change what is measured"
 
 
-@pytest.mark.parametrize("who", ["source", "target"])
-def test_depth_only_measures_equal_the_full_ones(shared_data: Path, who: str) -> None:
-    """The source's depth-only measurement (the SDF sampled only where a vertex may be inside) reads the same
-    depths, volume and lowest vertex as the full measurement: 48 frames of a two-hand grip, on the source body
-    (the source's motion) and on the bulky target (the copy)."""
-    from retarget_core.body_cache import body_assets
-    from retarget_core.jobs import JobInputs
-    from retarget_core.options import RetargetOptions
-    from retarget_core.pipeline import prepare
+def test_hand_geometry_is_built_once_per_body() -> None:
+    """"before" and "after" of a job share the body's hand-to-part geometry; another body gets its own."""
+    from retarget_core.metrics.compute import cached_hand_geometry
 
-    inputs = JobInputs(shared_data / "motions" / "cmu" / "002_08.bvh", shared_data / "characters" / "mh_male_bulky.glb",
-                       options=RetargetOptions(fps=30.0, frame_end=190))  # fmt: skip
-    p = prepare(inputs, max_frames=48)
-    body = p.source_body if who == "source" else p.target
-    motion = p.source_view if who == "source" else p.before
-    sdf = body_assets(body.character, body.mapping)[0].sdf
-    full = measure_clip(body.character, body.mapping, sdf, motion)
-    fast = measure_clip(body.character, body.mapping, sdf, motion, depth_only=True)
-    assert int(full.depths.count_above(0.0).sum()) > 0, "the case must penetrate"
-    for name in ("vertex_depth", "penetration_volume", "lowest_vertex"):
-        assert torch.equal(getattr(fast, name), getattr(full, name)), name
-    assert bool(torch.isnan(fast.limb_distance).all())
-    with pytest.raises(ValueError, match="depth_only"):
-        measure_clip(body.character, body.mapping, sdf, motion, p.constraints, depth_only=True)
+    ch = load_preset("male_average")
+    parts = body_parts(ch, mapping_by_name(ch.skeleton.names))
+    other = body_parts(ch, mapping_by_name(ch.skeleton.names))
+    first = cached_hand_geometry(ch, parts)
+    assert cached_hand_geometry(ch, parts) is first
+    fresh = cached_hand_geometry(ch, other)
+    assert fresh is not first and torch.equal(fresh.faces, first.faces)
