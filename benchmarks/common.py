@@ -189,16 +189,18 @@ def source_frames(motion: Path, frames: int, fps: float) -> int:
     return max(2, int(round((frames - 1) * src_fps / fps)) + 1)
 
 
-def run_job_once(motion: Path, target: str, frames: int, fps: float, stages_on: bool | None) -> dict[str, Any]:
+def run_job_once(motion: Path, target: str, frames: int, fps: float, stages_on: bool | None,
+                 switched: dict[str, bool] | None = None) -> dict[str, Any]:  # fmt: skip
     """One job (``pipeline.run_job``) in a scratch folder: wall and CPU seconds, the pipeline's seconds per stage,
     the stages' reports and whether the per-body cache was warm. ``stages_on``: every refinement stage on (True)
-    or off (False); None: the default chain."""
+    or off (False); None: the default chain; ``switched``: stages then switched on or off by name."""
     from retarget_core.jobs import JobInputs
     from retarget_core.options import RetargetOptions
     from retarget_core.pipeline import run_job
     from retarget_core.stages import REFINEMENT_STAGE_NAMES
 
-    extra: dict[str, Any] = {} if stages_on is None else {"stages": {n: stages_on for n in REFINEMENT_STAGE_NAMES}}
+    stages = {} if stages_on is None else {n: stages_on for n in REFINEMENT_STAGE_NAMES}
+    extra: dict[str, Any] = {"stages": {**stages, **(switched or {})}}
     opts = RetargetOptions(fps=fps, frame_end=source_frames(motion, frames, fps), **extra)
     with tempfile.TemporaryDirectory() as tmp, timer() as t:
         out = run_job(JobInputs(motion, target, options=opts), Path(tmp))

@@ -44,7 +44,7 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
               "retarget_core.refine.foot_lock", 0.03),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
-              "retarget_core.refine.fingers", 0.01, default=False),
+              "retarget_core.refine.fingers", 0.01),
 )  # fmt: skip
 """Why each default stands: docs/results.md (the held-out evaluation of the default chain and its variants)."""
 
@@ -54,7 +54,7 @@ PREPARE_STEPS: dict[str, float] = {"read": 0.08, "copy": 0.04, "body": 0.06}
 PREPARE_ORDER: tuple[str, ...] = ("read", "copy", "contacts", "body")
 """What :func:`retarget_core.pipeline.prepare` runs, in order (``contacts`` is a switchable stage)."""
 
-FINISH_STEPS: dict[str, float] = {"metrics": 0.22, "write": 0.1}
+FINISH_STEPS: dict[str, float] = {"metrics": 0.21, "write": 0.1}
 """The fixed steps after the refinement stages, with their share of a job's time."""
 
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

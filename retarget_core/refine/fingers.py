@@ -3,23 +3,27 @@
 The copy sets every finger joint from the source (docs/mapping.md) and the other refinement stages turn only the
 22 canonical joints, so a hand that the contact stages put on a thicker thigh keeps the copy's finger angles, and
 its fingers (most often the thumb, whose base is part of the palm) can end inside the thigh. This stage runs last
-and turns finger joints only, and only where finger vertices are inside another part of the body:
+and turns finger joints only, and only where a finger is inside another part of the body deeper than its palm:
 
-1. Find: every finger vertex's depth inside the parts a hand is tested against, on every frame (the job's part
-   SDFs, blended, beyond the bind pose's depth and weighted by the geodesic ramp: the depth the collision stages
-   use, :mod:`retarget_core.energy.sdf`). Frames where no finger is deeper than ``tolerance_m`` keep the copy's
-   finger rotations bit for bit, and so does every finger that does not sink.
+1. Find: every finger vertex's depth, and its hand's palm's, inside the parts a hand is tested against, on every
+   frame (:mod:`retarget_core.refine.finger_depth`: the collision stages' depth). A finger *sinks* where it is
+   deeper than its palm by more than ``tolerance_m``; it is turned only through a run of such frames in which it
+   goes deeper than its palm by more than ``allowance_m`` somewhere. A palm in the body (the skinning fold at the
+   hip on a walk, a hand pressed on a thigh) is the stages' before, which no finger turn can mend, and a finger
+   brushing a surface a few millimetres deep is left alone: no finger flicks on a walk. Everywhere else the
+   fingers keep the copy's rotations bit for bit.
 2. Turn, proximal to distal (first, middle, last joint of each finger and of the thumb): on the frames where a
-   finger sinks from that joint on, each candidate turn of the joint is measured (on rays from no turn, every
-   ``step_deg`` up to ``max_turn_deg``: flexion and extension for a hinge, ``directions`` rays in the
-   flexion-spread plane for the thumb's first joint); a ray "clears" a frame at the smallest turn along it that
-   takes the finger to the least depth any candidate inside the joint's range reaches, plus ``tolerance_m``. Per
-   finger and run of such frames one ray is kept (the one whose worst frame needs the least turn), so the finger
-   does not flip between solutions from frame to frame; the turn along it is eased in and out over
-   ``ease_seconds`` each side (a running maximum, then a binomial average: never less than a frame needs, never
-   beyond the joint's range on the frames measured). The segments beyond follow (their local rotations are kept), so a knuckle that lifts the whole
-   finger leaves nothing for the next joint. Palm, wrist and body do not move: the palm's contact is what the
-   contact stages made it.
+   finger sinks from that joint on, candidate turns of the joint are measured on rays from no turn (flexion and
+   extension for a hinge, ``directions`` rays in the flexion-spread plane for the thumb's first joint), every
+   ``COARSE`` x ``step_deg`` up to ``max_turn_deg``; a ray "clears" a frame at the smallest turn along it that
+   takes the finger to its goal: its palm's depth, or the least depth any candidate inside the joint's range
+   reaches, plus ``tolerance_m``. Per finger and run of such frames one ray is kept (the one whose worst frame
+   needs the least turn), so the finger does not flip between solutions from frame to frame; the turn along it
+   is refined to ``step_deg`` and eased in and out over ``ease_seconds`` each side (a running maximum, then a
+   binomial average: never less than a frame needs, never beyond the joint's range on the frames measured). The
+   segments beyond follow (their local rotations are kept), so a knuckle that lifts the whole finger leaves
+   nothing for the next joint. Palm, wrist and body do not move: the palm's contact is what the contact stages
+   made it.
 
 Axes. Palm normal ``n``: ``d x k`` on the left hand, ``k x d`` on the right, with ``d`` from the wrist to the mean
 of the fingers' first joints and ``k`` the knuckle line from pinky to index. Flexion axis: the hand's ``d x n`` for
@@ -42,6 +46,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -52,8 +57,16 @@ from retarget_core import kinematics
 from retarget_core import rotations as rot
 from retarget_core.canonical import FINGERS, JointMapping
 from retarget_core.context import RefineContext, StageOutcome
-from retarget_core.energy.sdf import segment_distance, segment_matrices
+from retarget_core.energy.sdf import segment_matrices
 from retarget_core.motion import Motion
+from retarget_core.refine.finger_depth import (
+    FingerVertices,
+    chain_depths,
+    finger_depths,
+    finger_vertices,
+    palms,
+    sinking,
+)
 from retarget_core.refine.two_bone_ik import axis_angle
 from retarget_core.skeleton import Skeleton
 
@@ -64,22 +77,25 @@ FINGER_RANGE_DEG: tuple[tuple[float, float], ...] = ((-30.0, 90.0), (-5.0, 100.0
 THUMB_RANGE_DEG: tuple[tuple[float, float], ...] = ((-20.0, 45.0), (-10.0, 60.0), (-20.0, 80.0))
 THUMB_SPREAD_DEG = 40.0  # the thumb's CMC spread either way from the copy; every other joint is a hinge here
 MIN_AXIS = 0.3  # a thumb bone this close to the palm normal (|bone x n|) flexes about the hand's axis instead
+COARSE = 3  # rays are searched every COARSE steps, then the turn kept along one is refined to a step
+POSES_PER_BATCH = 2048  # candidate poses measured at once (memory: poses x finger vertices of sinking fingers)
 
 
 @dataclass(frozen=True)
 class FingerParams:
     """Settings (lengths at a 1.80 m character)."""
 
-    # Depth a finger may keep: below it a finger is on the surface (about the SDF grids' trilinear error).
+    # Depth a finger may keep beyond its palm's: below it a finger is on the surface (about the SDF grids' error).
     tolerance_m: float = 0.001
+    # A finger is turned only through a contact (a run of frames deeper than its palm by more than the tolerance)
+    # where it goes deeper than its palm by more than this somewhere: a finger brushing a surface is left alone.
+    allowance_m: float = 0.005
     # Candidate turns: every step_deg up to max_turn_deg along each ray; rays around a joint that also spreads.
     max_turn_deg: float = 45.0
     step_deg: float = 2.5
     directions: int = 12
     # Turns are eased in and out over this long each side of the frames that need them (and never drop between).
     ease_seconds: float = 0.2
-    # Frames measured at once (each carries every candidate: memory is candidates x frames x finger vertices).
-    frame_chunk: int = 8
 
 
 @dataclass(frozen=True)
@@ -182,95 +198,6 @@ def bends(chains: list[FingerChain], level: int, grot: Tensor, gpos: Tensor, fle
     return torch.stack(out, dim=1)
 
 
-@dataclass(frozen=True)
-class FingerVertices:
-    """The vertices a finger turn moves. index: ``(N,)`` body vertices with skin weight on a turned finger joint;
-    chain: ``(N,)`` the chain weighing most on it; own: ``(N,)`` its largest weight is on that chain (a finger
-    vertex, else a palm vertex the finger drags); level: ``(N,)`` for a finger vertex the place of its dominant
-    joint in the chain, for a dragged one the farthest place it is weighted to; tested: ``(S,)`` the segments a
-    hand is tested against (with a grid)."""
-
-    index: Tensor
-    chain: Tensor
-    own: Tensor
-    level: Tensor
-    tested: Tensor
-
-
-def finger_vertices(ctx: RefineContext, chains: list[FingerChain]) -> FingerVertices:
-    """The body vertices of every chain, and the segments they are tested against."""
-    character, parts = ctx.target, ctx.parts
-    chain_of = torch.full((character.skeleton.num_joints,), -1, dtype=torch.long)
-    level_of = torch.full_like(chain_of, -1)
-    for c, ch in enumerate(chains):
-        chain_of[list(ch.joints)], level_of[list(ch.joints)] = c, torch.arange(len(ch.joints))
-    joints, weights = character.skin_joints, character.skin_weights.clamp_min(0.0)
-    owner = chain_of[joints]  # (V, K) chain of each influence, -1 for other joints
-    share = weights.new_zeros(len(joints), len(chains) + 1).scatter_add_(1, owner + 1, weights)[:, 1:]  # (V, C)
-    best, chain = share.max(1)
-    dominant = joints.gather(1, weights.argmax(1, keepdim=True))[:, 0]
-    own = chain_of[dominant] >= 0
-    chain = torch.where(own, chain_of[dominant], chain)
-    farthest = torch.where((owner == chain[:, None]) & (weights > 0), level_of[joints], -1).amax(1)
-    level = torch.where(own, level_of[dominant], farthest)
-    mine = best > 0 if parts.body is None else (best > 0) & parts.body
-    index = torch.nonzero(mine).flatten()
-    has_grid = torch.tensor([g is not None for g in ctx.sdf.grids])
-    tested = ctx.sdf.allowed.index_select(0, parts.vertex_part[index].unique()).any(0) & has_grid
-    return FingerVertices(index, chain[index], own[index], level[index], tested)
-
-
-def _overlap(ctx: RefineContext, posed: Tensor, chain: Tensor, num_chains: int, mats: Tensor) -> Tensor:
-    """``(F, C, S)``: the bounding box of chain ``c``'s posed points meets segment ``s``'s posed grid box; ``posed
-    (F, R, 3)`` points of chains ``chain (R,)``, ``mats (F, S, 3, 4)`` the segments' skinning transforms."""
-    corners = (
-        torch.einsum("fsij,skj->fski", mats[..., :3], ctx.sdf.grid_corners().to(mats.dtype)) + mats[:, :, None, :, 3]
-    )
-    idx = chain[None, :, None].expand_as(posed)
-    lo = posed.new_full((posed.shape[0], num_chains, 3), math.inf).scatter_reduce(1, idx, posed, "amin")
-    hi = posed.new_full((posed.shape[0], num_chains, 3), -math.inf).scatter_reduce(1, idx, posed, "amax")
-    return (
-        (lo[:, :, None] <= corners.max(2).values[:, None]) & (hi[:, :, None] >= corners.min(2).values[:, None])
-    ).all(-1)
-
-
-def depths(ctx: RefineContext, fv: FingerVertices, rows: Tensor, grot: Tensor, gpos: Tensor,
-           mats: Tensor | None = None) -> Tensor:  # fmt: skip
-    """Depth ``(F, R)`` (m, the body's scale) of the finger vertices ``fv.index[rows]`` inside the segments they
-    are tested against (the collision stages' depth: module doc), for world transforms ``(F, J, 4)``, ``(F, J, 3)``
-    (``mats (F, S, 3, 4)``: the segments' skinning transforms, when known). Only points inside a segment's grid box
-    are sampled (beyond it the distance exceeds the grid margin)."""
-    sdf, verts, chain = ctx.sdf, fv.index.index_select(0, rows), fv.chain.index_select(0, rows)
-    posed = ctx.target.pose_vertex_subset(verts, grot, gpos)  # (F, R, 3)
-    mats = segment_matrices(ctx.target, ctx.parts, grot, gpos) if mats is None else mats
-    allowed = sdf.allowed.index_select(0, ctx.parts.vertex_part.index_select(0, verts)) & fv.tested  # (R, S)
-    overlap = _overlap(ctx, posed, chain, int(fv.chain.max()) + 1, mats)  # (F, C, S)
-    corners = sdf.grid_corners()  # (S, 8, 3): the first is the box's low corner, the last its high one
-    out = posed.new_zeros(posed.shape[:2])
-    for s in torch.nonzero(overlap.any(1).any(0) & fv.tested).flatten().tolist():
-        fi, ri = torch.nonzero(overlap[:, :, s].index_select(1, chain) & allowed[:, s], as_tuple=True)
-        m = mats[:, s].index_select(0, fi)  # (P, 3, 4)
-        local = torch.einsum("nji,nj->ni", m[..., :3], posed[fi, ri] - m[..., 3])  # in the segment's rest frame
-        box = torch.nonzero(((local >= corners[s, 0]) & (local <= corners[s, -1])).all(-1)).flatten()
-        if len(box) == 0:
-            continue
-        fi, ri, v = fi[box], ri[box], verts.index_select(0, ri[box])
-        dist = segment_distance(sdf, s, local.index_select(0, box))
-        depth = (-dist - sdf.rest_depth[v, s].to(dist.dtype)).clamp_min(0.0) * sdf.geodesic_weight[v, s].to(dist.dtype)
-        out.index_put_((fi, ri), torch.maximum(out[fi, ri], depth.to(out.dtype)))
-    return out
-
-
-def chain_depths(depth: Tensor, fv: FingerVertices, rows: Tensor, num_chains: int, level: int,
-                 own: bool = True) -> Tensor:  # fmt: skip
-    """Deepest vertex ``(F, C)`` of each chain from its ``level``-th joint on (``own``: its finger vertices, else
-    the palm vertices it drags), from ``depth (F, R)`` of the vertices ``rows (R,)``."""
-    chain, lvl = fv.chain.index_select(0, rows), fv.level.index_select(0, rows)
-    mine = (lvl >= level) & (fv.own.index_select(0, rows) == own)
-    out = depth.new_zeros(depth.shape[0], num_chains)
-    return out.scatter_reduce(1, chain[mine].expand(depth.shape[0], -1), depth[:, mine], "amax")
-
-
 def turned(local: Tensor, grot: Tensor, chains: list[FingerChain], level: int, axes: tuple[Tensor, Tensor],
            angle: Tensor) -> Tensor:  # fmt: skip
     """``local (F, J, 4)`` with each chain's ``level``-th joint turned in the world by ``angle (F, C, 2)`` (radians:
@@ -278,7 +205,7 @@ def turned(local: Tensor, grot: Tensor, chains: list[FingerChain], level: int, a
     rotations of ``local``. Untouched where both angles are 0."""
     out = local.clone()
     for c, chain in enumerate(chains):
-        if level >= len(chain.joints):
+        if level >= len(chain.joints) or not bool((angle[:, c] != 0).any()):
             continue
         j = chain.joints[level]
         back = rot.inv(grot[:, j])  # world axes into the joint's own frame: G' = R_flex R_spread G
@@ -306,21 +233,6 @@ def feasible(chains: list[FingerChain], level: int, bend: Tensor, turns: Tensor)
     return ok | (turns == 0).all(-1)
 
 
-@dataclass
-class LevelPose:
-    """Frames at one level: ``local (n, J, 4)``, ``trans (n, J, 3)``, their world transforms, the chains' axes
-    (flexion, spread ``(n, C, 3)``) and bends ``(n, C)`` at that level, and the finger vertex rows measured."""
-
-    level: int
-    local: Tensor
-    trans: Tensor
-    grot: Tensor
-    gpos: Tensor
-    axes: tuple[Tensor, Tensor]
-    bend: Tensor
-    rows: Tensor
-
-
 def subtree_fk(
     sk: Skeleton, roots: list[int], local: Tensor, trans: Tensor, grot: Tensor, gpos: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -338,12 +250,45 @@ def subtree_fk(
     return grot, gpos
 
 
-def level_pose(ctx: RefineContext, chains: list[FingerChain], level: int, local: Tensor, trans: Tensor,
-               rows: Tensor) -> LevelPose:  # fmt: skip
-    """The :class:`LevelPose` of frames ``local (n, J, 4)``, ``trans (n, J, 3)``."""
-    grot, gpos = kinematics.forward_kinematics(ctx.target.skeleton.parents, local, trans)
-    axes = chain_axes(chains, level, grot, gpos)
-    return LevelPose(level, local, trans, grot, gpos, axes, bends(chains, level, grot, gpos, axes[0]), rows)
+@dataclass
+class LevelPose:
+    """Frames at one level: ``local (n, J, 4)``, ``trans (n, J, 3)``, their world transforms, the chains' axes
+    (flexion, spread ``(n, C, 3)``) and bends ``(n, C)`` at that level, and the finger vertex rows measured."""
+
+    level: int
+    local: Tensor
+    trans: Tensor
+    grot: Tensor
+    gpos: Tensor
+    axes: tuple[Tensor, Tensor]
+    bend: Tensor
+    rows: Tensor
+
+
+@dataclass(frozen=True)
+class Level:
+    """One level of the search: the joints at place ``level`` of every chain, on ``motion``'s frames."""
+
+    ctx: RefineContext
+    fv: FingerVertices
+    chains: list[FingerChain]
+    level: int
+    motion: Motion
+
+    def pose(self, frames: Tensor, rows: Tensor) -> LevelPose:
+        """The :class:`LevelPose` of ``frames (n,)``, measuring the finger vertex rows ``rows (R,)``."""
+        local, trans = self.motion.rotations[frames], self.motion.translations[frames]
+        grot, gpos = kinematics.forward_kinematics(self.ctx.target.skeleton.parents, local, trans)
+        axes = chain_axes(self.chains, self.level, grot, gpos)
+        return LevelPose(self.level, local, trans, grot, gpos, axes, bends(self.chains, self.level, grot, gpos, axes[0]),
+                         rows)  # fmt: skip
+
+    def chunks(self, frames: Tensor, want: Tensor, size: int) -> Iterator[tuple[Tensor, LevelPose]]:
+        """``size`` frames of ``frames (n,)`` at a time: their places in ``frames`` and their pose, measuring the
+        vertices of the chains that ``want (n, C)`` there."""
+        for idx in torch.split(torch.arange(len(frames)), size):
+            rows = torch.nonzero(want[idx].any(0).index_select(0, self.fv.chain)).flatten()
+            yield idx, self.pose(frames[idx], rows)
 
 
 @dataclass(frozen=True)
@@ -361,57 +306,80 @@ class Candidates:
 
 def candidates(params: FingerParams, spread: bool) -> Candidates:
     """Flexion and extension alone for a hinge; ``params.directions`` rays around the plane where the joint also
-    spreads."""
+    spreads; along each, every ``COARSE`` steps up to ``max_turn_deg``."""
     n = params.directions if spread else 2
     psi = 2.0 * math.pi * torch.arange(n, dtype=torch.float64) / n
     dirs = torch.stack([psi.cos(), psi.sin()], -1)
     dirs = torch.where(dirs.abs() < 1e-9, 0.0, dirs).float()  # exact zeros: a hinge's rays never spread
-    steps = round(params.max_turn_deg / params.step_deg)
-    return Candidates(dirs, params.step_deg * torch.arange(steps + 1, dtype=torch.float32))
+    step = COARSE * params.step_deg
+    radii = step * torch.arange(math.ceil(params.max_turn_deg / step - 1e-6) + 1, dtype=torch.float32)
+    return Candidates(dirs, radii.clamp_max(params.max_turn_deg))
+
+
+def measure_turns(job: Level, pose: LevelPose, turns: Tensor, want: Tensor) -> tuple[Tensor, Tensor]:
+    """Depth ``(M, n, C)`` of every chain's finger from ``pose.level`` on, and of the palm vertices it drags, with
+    that joint turned by ``turns (M, n, C, 2)`` (degrees), where ``want (M, n, C)`` (elsewhere 0, not turned)."""
+    (m, n, c_n), rep = turns.shape[:3], (turns.shape[0], 1, 1)
+    moving = want.flatten(0, 1).any(0).tolist()
+    turns = torch.where(want[..., None], turns, 0.0)
+    axes = (pose.axes[0].repeat(rep), pose.axes[1].repeat(rep))
+    local = turned(pose.local.repeat(rep), pose.grot.repeat(rep), job.chains, pose.level, axes,
+                   torch.deg2rad(turns).reshape(-1, c_n, 2))  # fmt: skip
+    roots = [c.joints[pose.level] for c, on in zip(job.chains, moving, strict=True)
+             if on and pose.level < len(c.joints)]  # fmt: skip
+    grot, gpos = subtree_fk(job.ctx.target.skeleton, roots, local, pose.trans.repeat(rep), pose.grot.repeat(rep),
+                            pose.gpos.repeat(rep))  # fmt: skip
+    mats = segment_matrices(job.ctx.target, job.ctx.parts, pose.grot, pose.gpos).repeat(m, 1, 1, 1)  # none moves
+    every = finger_depths(job.ctx, job.fv, pose.rows, grot, gpos, mats, want.flatten(0, 1))
+    depth, dragged = (chain_depths(every, job.fv, pose.rows, c_n, pose.level, own).view(m, n, c_n)
+                      for own in (True, False))  # fmt: skip
+    return depth, dragged
 
 
 @dataclass
 class Needs:
     """Per ray, frame and chain ``(D, n, C)`` (degrees): ``clear`` the smallest turn along the ray that takes the
-    finger to the least depth any feasible candidate reaches plus the tolerance (inf: none does), ``least`` the
-    turn of least depth along it, ``cap`` the largest turn up to which every turn along it is feasible: inside the
-    joint's range, dragging no palm vertex deeper than no turn does, by more than the tolerance."""
+    finger to its ``goal`` (inf: none does), ``least`` the turn of least depth along it, ``cap`` the largest turn
+    up to which every turn along it is feasible: inside the joint's range, dragging no palm vertex deeper than
+    ``drag``. Per frame and chain ``(n, C)`` (m): ``goal`` the depth a finger may keep: its palm's, or the least
+    any feasible candidate reaches, plus the tolerance; ``drag`` the dragged palm vertices' depth with no turn
+    plus the tolerance."""
 
     clear: Tensor
     least: Tensor
     cap: Tensor
+    goal: Tensor
+    drag: Tensor
+
+    @staticmethod
+    def cat(parts: list[Needs]) -> Needs:
+        """Parts over consecutive frames joined."""
+        return Needs(
+            *(torch.cat([getattr(p, k) for p in parts], -2) for k in ("clear", "least", "cap", "goal", "drag"))
+        )
 
 
-def needs(ctx: RefineContext, fv: FingerVertices, chains: list[FingerChain], pose: LevelPose, cand: Candidates,
-          tol: float) -> Needs:  # fmt: skip
-    """Every candidate turn of every chain's ``pose.level``-th joint on ``pose``'s frames, measured (``tol``: m)."""
+def needs(job: Level, pose: LevelPose, palm: Tensor, sinks: Tensor, cand: Candidates, tol: float) -> Needs:
+    """Every candidate turn of every chain's ``pose.level``-th joint on ``pose``'s frames where it ``sinks (n,
+    C)``, measured (``palm (n, C)``: the depth of each chain's palm, m; ``tol``: m). Elsewhere no turn is needed."""
     (n, c_n), (d_n, r_n) = pose.bend.shape, (len(cand.dirs), len(cand.radii))
     turns = cand.turns.to(pose.local.dtype)[:, None, None, :].expand(-1, n, c_n, 2)  # (M, n, C, 2)
-    rep = (len(turns), 1, 1)
-    local = turned(pose.local.repeat(rep), pose.grot.repeat(rep), chains, pose.level,
-                   (pose.axes[0].repeat(rep), pose.axes[1].repeat(rep)), torch.deg2rad(turns).reshape(-1, c_n, 2))  # fmt: skip
-    roots = [c.joints[pose.level] for c in chains if pose.level < len(c.joints)]
-    grot, gpos = subtree_fk(ctx.target.skeleton, roots, local, pose.trans.repeat(rep), pose.grot.repeat(rep),
-                            pose.gpos.repeat(rep))  # fmt: skip
-    mats = segment_matrices(ctx.target, ctx.parts, pose.grot, pose.gpos).repeat(
-        len(turns), 1, 1, 1
-    )  # no finger moves one
-    every = depths(ctx, fv, pose.rows, grot, gpos, mats)
-    depth, dragged = (chain_depths(every, fv, pose.rows, c_n, pose.level, own).view(d_n, r_n, n, c_n)
-                      for own in (True, False))  # fmt: skip
-    ok = feasible(chains, pose.level, pose.bend, turns).view(d_n, r_n, n, c_n) & (dragged <= dragged[:1, :1] + tol)
-    ok = ok.cumprod(1).bool()  # along a ray, up to its first infeasible turn
-    floor = depth.masked_fill(~ok, math.inf).amin((0, 1))
+    fit = feasible(job.chains, pose.level, pose.bend, turns).view(d_n, r_n, n, c_n).cumprod(1).bool()
+    want = (fit & sinks).view(-1, n, c_n)  # along a ray up to its first turn out of range
+    depth, dragged = (x.view(d_n, r_n, n, c_n) for x in measure_turns(job, pose, turns, want))
+    drag = dragged[0, 0] + tol
+    ok = (fit & (dragged <= drag)).cumprod(1).bool()  # along a ray, up to its first infeasible turn
+    goal = torch.maximum(depth.masked_fill(~ok, math.inf).amin((0, 1)), palm) + tol
     radius = cand.radii.to(depth.dtype)[None, :, None, None].expand_as(depth)
-    clear = radius.masked_fill(~(ok & (depth <= floor + tol)), math.inf).amin(1)
+    clear = radius.masked_fill(~(ok & (depth <= goal)), math.inf).amin(1)
     least = cand.radii.to(depth.dtype)[depth.masked_fill(~ok, math.inf).argmin(1)]
-    return Needs(clear, least, radius.masked_fill(~ok, -math.inf).amax(1))
+    return Needs(clear, least, radius.masked_fill(~ok, -math.inf).amax(1), goal, drag)
 
 
-def choose(found: Needs, frames: Tensor, gap: int) -> tuple[Tensor, Tensor]:
+def choose(found: Needs, frames: Tensor, gap: int) -> tuple[Tensor, Tensor, Tensor]:
     """One ray per chain and run of frames (``frames (n,)`` split where more than ``gap`` apart): the one whose
-    worst frame needs the least turn (a ray clearing every frame first). Returns the ray ``(n, C)`` and the turn
-    along it ``(n, C)`` (degrees: the clearing one, else the least deep)."""
+    worst frame needs the least turn (a ray clearing every frame first). Returns the ray ``(n, C)``, the turn
+    along it ``(n, C)`` (degrees: the clearing one, else the least deep) and whether it clears ``(n, C)``."""
     ray = torch.zeros(found.clear.shape[1:], dtype=torch.long)
     cut = torch.nonzero(frames.diff() > gap).flatten() + 1
     for run in torch.tensor_split(torch.arange(len(frames)), cut.tolist()):
@@ -421,7 +389,33 @@ def choose(found: Needs, frames: Tensor, gap: int) -> tuple[Tensor, Tensor]:
         ray[run] = (misses * 1e4 + worst).argmin(0)[None]
     pick = ray[None]
     clear, least = found.clear.gather(0, pick)[0], found.least.gather(0, pick)[0]
-    return ray, torch.where(torch.isinf(clear), least, clear)
+    clears = torch.isfinite(clear)
+    return ray, torch.where(clears, clear, least), clears
+
+
+def finer(job: Level, pose: LevelPose, dirs: Tensor, radius: Tensor, redo: Tensor, found: Needs,
+          step: float) -> Tensor:  # fmt: skip
+    """``radius (n, C)`` (degrees, a clearing turn along ``dirs (n, C, 2)`` found every ``COARSE`` steps) made,
+    where ``redo (n, C)``, the smallest of it and the turns one step, two steps, .. short of it that take the
+    finger to ``found.goal`` and drag no palm vertex beyond ``found.drag`` (``found``: ``(n, C)`` fields of these
+    frames)."""
+    shorter = radius[None] - step * torch.arange(COARSE - 1, 0, -1, dtype=radius.dtype)[:, None, None]  # (K, n, C)
+    want = (shorter > 0) & redo
+    depth, dragged = measure_turns(job, pose, dirs[None] * shorter.clamp_min(0.0)[..., None], want)
+    good = (depth <= found.goal) & (dragged <= found.drag) & want
+    return shorter.masked_fill(~good, math.inf).amin(0).minimum(radius)
+
+
+def refined(job: Level, frames: Tensor, dirs: Tensor, radius: Tensor, redo: Tensor, found: Needs,
+            step: float) -> Tensor:  # fmt: skip
+    """``radius (n, C)`` on ``frames (n,)`` with :func:`finer` turns where ``redo (n, C)``."""
+    at = torch.nonzero(redo.any(1)).flatten()
+    out = radius.clone()
+    for idx, pose in job.chunks(frames[at], redo[at], max(1, POSES_PER_BATCH // (COARSE - 1))):
+        k = at[idx]
+        sub = Needs(*(getattr(found, f)[..., k, :] for f in ("clear", "least", "cap", "goal", "drag")))
+        out[k] = finer(job, pose, dirs[k], radius[k], redo[k], sub, step)
+    return out
 
 
 def ease_frames(params: FingerParams, fps: float) -> int:
@@ -441,45 +435,41 @@ def dilate_smooth(x: Tensor, half: int) -> Tensor:
     return torch.nn.functional.conv1d(padded, (kernel / kernel.sum())[None, None])[:, 0].T
 
 
-def solve_level(ctx: RefineContext, fv: FingerVertices, chains: list[FingerChain], level: int, motion: Motion,
-                params: FingerParams, depth: Tensor) -> Tensor:  # fmt: skip
-    """Turns ``(F, C, 2)`` (degrees: flexion, spread) of every chain's ``level``-th joint over the clip (module doc):
-    measured on the frames where a finger sinks from that joint on (``depth (F, C)``: its depth, m), one ray per
-    run of them, eased in and out."""
-    tol = params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
-    local, trans = motion.rotations, motion.translations
-    deep = depth > tol  # (F, C)
+def buried(excess: Tensor, tol: float, allowance: float) -> Tensor:
+    """``(F, C)``: the frames of each chain's runs of ``excess (F, C)`` (its depth beyond its palm's, m) above
+    ``tol`` that go beyond ``allowance`` somewhere."""
+    over = excess > tol
+    start = over & ~torch.cat([torch.zeros_like(over[:1]), over[:-1]])
+    run = start.long().cumsum(0)  # each chain's runs numbered from 1 (0: before its first)
+    peak = torch.zeros(excess.shape[0] + 1, excess.shape[1], dtype=excess.dtype)
+    peak = peak.scatter_reduce(0, run, excess.masked_fill(~over, 0.0), "amax")
+    return over & (peak.gather(0, run) > allowance)
+
+
+def solve_level(job: Level, params: FingerParams, deep: Tensor, palm: Tensor) -> Tensor:
+    """Turns ``(F, C, 2)`` (degrees: flexion, spread) of every chain's ``job.level``-th joint over the clip (module
+    doc): measured on the frames where a finger sinks beyond its palm from that joint on (``deep (F, C)``; ``palm
+    (F, C)`` its palm's depth, m), one ray per run of them, eased in and out."""
+    tol = params.tolerance_m * job.ctx.target.height / REFERENCE_HEIGHT_M
+    local = job.motion.rotations
     frames = torch.nonzero(deep.any(1)).flatten()
-    turns = local.new_zeros(local.shape[0], len(chains), 2)
+    turns = local.new_zeros(local.shape[0], len(job.chains), 2)
     if len(frames) == 0:
         return turns
-    rows = torch.nonzero(deep.any(0).index_select(0, fv.chain)).flatten()  # vertices of the sinking chains
-    cand = candidates(params, any(level < len(c.joints) and float(c.spread[level]) > 0 for c in chains))
-    parts = [needs(ctx, fv, chains, level_pose(ctx, chains, level, local[f], trans[f], rows), cand, tol)
-             for f in torch.split(frames, params.frame_chunk)]  # fmt: skip
-    found = Needs(*(torch.cat([getattr(p, k) for p in parts], 1) for k in ("clear", "least", "cap")))
-    half = ease_frames(params, motion.fps)
-    ray, radius = choose(found, frames, 2 * half)
-    full = local.new_zeros(local.shape[0], len(chains))
+    cand = candidates(params, any(job.level < len(c.joints) and float(c.spread[job.level]) > 0 for c in job.chains))
+    size = max(1, POSES_PER_BATCH // len(cand.turns))
+    sinks = deep[frames]
+    found = Needs.cat([needs(job, pose, palm[frames[idx]], sinks[idx], cand, tol)
+                       for idx, pose in job.chunks(frames, sinks, size)])  # fmt: skip
+    half = ease_frames(params, job.motion.fps)
+    ray, radius, clears = choose(found, frames, 2 * half)
+    radius = refined(job, frames, cand.dirs[ray], radius, clears & (radius > 0), found, params.step_deg)
+    full = local.new_zeros(local.shape[0], len(job.chains))
     full[frames] = radius
     cap = torch.full_like(full, math.inf)
     cap[frames] = found.cap.gather(0, ray[None])[0]
     nearest = (torch.arange(len(full))[:, None] - frames[None]).abs().argmin(1)  # eased frames take their run's ray
     return dilate_smooth(full, half).minimum(cap)[..., None] * cand.dirs[ray[nearest]]
-
-
-def sinking(ctx: RefineContext, fv: FingerVertices, local: Tensor, trans: Tensor, num_chains: int, level: int = 0,
-            chunk: int = 64) -> Tensor:  # fmt: skip
-    """Deepest vertex ``(F, C)`` (m, the body's scale) of every chain from its ``level``-th joint on, on frames
-    ``local (F, J, 4)``, ``trans (F, J, 3)``."""
-    rows = torch.arange(len(fv.index))
-    out = [local.new_zeros(0, num_chains)]
-    for s in range(0, local.shape[0], chunk):
-        grot, gpos = kinematics.forward_kinematics(
-            ctx.target.skeleton.parents, local[s : s + chunk], trans[s : s + chunk]
-        )
-        out.append(chain_depths(depths(ctx, fv, rows, grot, gpos), fv, rows, num_chains, level))
-    return torch.cat(out)
 
 
 def sinking_on(ctx: RefineContext, fv: FingerVertices, motion: Motion, frames: Tensor, num_chains: int,
@@ -490,48 +480,71 @@ def sinking_on(ctx: RefineContext, fv: FingerVertices, motion: Motion, frames: T
     return out
 
 
-def clear_fingers(ctx: RefineContext, motion: Motion, params: FingerParams) -> tuple[Tensor, dict[str, Any]]:
-    """The motion's local rotations ``(F, J, 4)`` with sinking fingers turned out of the body, and figures."""
-    chains = finger_chains(motion.skeleton, ctx.target_mapping)
+def turn_levels(ctx: RefineContext, fv: FingerVertices, chains: list[FingerChain], motion: Motion,
+                params: FingerParams, chosen: Tensor, palm: Tensor, reach: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """The motion's local rotations ``(F, J, 4)`` with every level turned, proximal first, and the turns ``(F,
+    levels, C, 2)`` (degrees); ``chosen (F, C)`` where the fingers are turned (:func:`buried`), ``palm (F, C)``
+    their palms' depth, ``reach (F, C)`` where their turns reach: later joints turn there, where the finger from
+    that joint on is still deeper than its palm by more than the tolerance."""
     local = motion.rotations.clone()
-    if not chains or ctx.sdf is None:
-        return local, {"frames_changed": 0, "fingers": len(chains)}
-    fv = finger_vertices(ctx, chains)
-    first = sinking(ctx, fv, local, motion.translations, len(chains))  # (F, C)
-    before, to_cm = first.amax(1), 100.0 * REFERENCE_HEIGHT_M / ctx.target.height
-    deep = before > params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
-    report: dict[str, Any] = {"frames_changed": 0, "fingers": len(chains), "frames_sinking": int(deep.sum())}
-    if not bool(deep.any()):
-        return local, report
-    # Later joints and the final check look only where a turn can reach: the sinking frames and their easing.
-    near = torch.nonzero(dilate_smooth(deep[:, None].to(local.dtype), 2 * ease_frames(params, motion.fps))[:, 0] > 0)
-    near = near.flatten()
     levels = max(len(c.joints) for c in chains)
     turns = local.new_zeros(local.shape[0], levels, len(chains), 2)
+    near, tol = torch.nonzero(reach.any(1)).flatten(), params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
     for level in range(levels):
-        now = replace(motion, rotations=local)
-        depth = first if level == 0 else sinking_on(ctx, fv, now, near, len(chains), level)
-        turns[:, level] = solve_level(ctx, fv, chains, level, now, params, depth)
+        job = Level(ctx, fv, chains, level, replace(motion, rotations=local))
+        deep = (
+            chosen if level == 0 else reach & (sinking_on(ctx, fv, job.motion, near, len(chains), level) > palm + tol)
+        )
+        turns[:, level] = solve_level(job, params, deep, palm)
         f = torch.nonzero((turns[:, level] != 0).flatten(1).any(1)).flatten()
-        pose = level_pose(ctx, chains, level, local[f], motion.translations[f], f.new_zeros(0))
+        pose = job.pose(f, f.new_zeros(0))
         local[f] = turned(pose.local, pose.grot, chains, level, pose.axes, torch.deg2rad(turns[f, level]))
-    after = sinking_on(ctx, fv, replace(motion, rotations=local), near, len(chains)).amax(1)
-    after = torch.where(torch.isin(torch.arange(len(after)), near), after, before)
+    return local, turns
+
+
+def clear_fingers(ctx: RefineContext, motion: Motion, params: FingerParams) -> tuple[Tensor, dict[str, Any]]:
+    """The motion's local rotations ``(F, J, 4)`` with fingers that sink beyond their palm turned out of the body,
+    and figures."""
+    chains = finger_chains(motion.skeleton, ctx.target_mapping)
+    if not chains or ctx.sdf is None:
+        return motion.rotations.clone(), {"frames_changed": 0, "fingers": len(chains)}
+    fv, tol = finger_vertices(ctx, chains), params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
+    first = sinking(ctx, fv, motion.rotations, motion.translations, len(chains))  # (F, C)
+    inside = torch.nonzero(first.amax(1) > tol).flatten()  # only there can a finger sink beyond its palm
+    palm = torch.zeros_like(first)
+    if len(inside):
+        palm[inside] = palms(ctx, fv, motion.rotations[inside], motion.translations[inside])
+    chosen = buried(first - palm, tol, params.allowance_m * ctx.target.height / REFERENCE_HEIGHT_M)
+    to_cm = 100.0 * REFERENCE_HEIGHT_M / ctx.target.height
+    report: dict[str, Any] = {"frames_changed": 0, "fingers": len(chains), "frames_in_body": len(inside),
+                              "frames_beyond_palm": int((first - palm > tol).any(1).sum()),
+                              "frames_sinking": int(chosen.any(1).sum()),
+                              "finger_depth_before_cm": round(float(first.max()) * to_cm, 3),
+                              "beyond_palm_before_cm": round(float((first - palm).clamp_min(0.0).max()) * to_cm, 3)}  # fmt: skip
+    if not bool(chosen.any()):
+        return motion.rotations.clone(), report
+    # Later joints and the final check look only where a turn can reach: the chosen frames and their easing.
+    reach = dilate_smooth(chosen.to(first.dtype), 2 * ease_frames(params, motion.fps)) > 0
+    local, turns = turn_levels(ctx, fv, chains, motion, params, chosen, palm, reach)
+    near = torch.nonzero(reach.any(1)).flatten()
+    after = sinking_on(ctx, fv, replace(motion, rotations=local), near, len(chains))
+    after = torch.where(reach.any(1, keepdim=True), after, first)
     moved = (turns != 0).any(-1)  # (F, level, C)
     return local, {
         **report,
         "frames_changed": int(moved.flatten(1).any(1).sum()),
         "joints_turned": int(moved.sum()),
         "max_turn_deg": round(float(turns.norm(dim=-1).max()), 2),
-        "finger_depth_before_cm": round(float(before.max()) * to_cm, 3),
         "finger_depth_after_cm": round(float(after.max()) * to_cm, 3),
+        "beyond_palm_after_cm": round(float((after - palm).clamp_min(0.0).max()) * to_cm, 3),
     }
 
 
 def run(ctx: RefineContext, motion: Motion, params: FingerParams | None = None) -> StageOutcome:
-    """Turn sinking fingers onto the body's surface (module doc). Returns the motion and a report: frames changed,
-    fingers, frames with a finger deeper than the tolerance, joint turns, the largest turn and the deepest finger
-    vertex before and after (cm at 1.80 m, the stage's own SDF depth), seconds."""
+    """Turn fingers that sink beyond their palm onto the body's surface (module doc). Returns the motion and a
+    report: frames changed, fingers, frames with a finger in the body and with one deeper than its palm by more
+    than the tolerance, joint turns, the largest turn, the deepest finger vertex and the most a finger is deeper
+    than its palm, before and after (cm at 1.80 m, the stage's own SDF depth), seconds."""
     params = params or FingerParams()
     t0 = time.perf_counter()
     device = motion.rotations.device
@@ -545,4 +558,4 @@ def run(ctx: RefineContext, motion: Motion, params: FingerParams | None = None) 
     return StageOutcome(replace(motion, rotations=local.to(device)), report)
 
 
-__all__ = ["FingerChain", "FingerParams", "FingerVertices", "clear_fingers", "finger_chains", "finger_vertices", "run"]
+__all__ = ["FingerChain", "FingerParams", "clear_fingers", "finger_chains", "run"]

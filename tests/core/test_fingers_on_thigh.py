@@ -34,7 +34,7 @@ from retarget_core.motion import Motion
 from retarget_core.options import RetargetOptions
 from retarget_core.pipeline import prepare, refine, refine_context
 from retarget_core.refine import load_stage
-from retarget_core.refine.fingers import finger_chains
+from retarget_core.refine.fingers import buried, finger_chains
 from retarget_core.refine.two_bone_ik import two_bone_ik
 from retarget_core.retargeted import Prepared
 from retarget_core.skeleton import Skeleton
@@ -261,8 +261,7 @@ def finger_joints(mapping: JointMapping, side: str = "") -> list[int]:
 
 
 def test_the_stage_runs_last_in_the_default_chain() -> None:
-    # Off by default until its cost on real rigs is fixed (docs/mapping.md).
-    assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and not RetargetOptions().stages.enabled("fingers")
+    assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and RetargetOptions().stages.enabled("fingers")
 
 
 def test_the_stage_finds_every_finger_and_no_fingers_where_a_rig_has_none() -> None:
@@ -273,6 +272,16 @@ def test_the_stage_finds_every_finger_and_no_fingers_where_a_rig_has_none() -> N
     ]
     assert [float(c.spread.max()) > 0 for c in chains] == [c.finger == "Thumb" for c in chains]  # the CMC alone
     assert finger_chains(sk, replace(map_joints(sk), extras={})) == []  # a rig mapped without fingers
+
+
+def test_only_contacts_that_bury_a_finger_beyond_its_palm_are_turned() -> None:
+    """A run of frames deeper than the palm by more than the tolerance is turned whole where it goes beyond the
+    allowance somewhere; a brush that never does (a walk's fingers by the hip) is left alone."""
+    mm = 0.001
+    excess = torch.tensor([[0.0, 2, 6, 3, 0.5, 2, 4, 2, 0], [3.0, 3, 3, 3, 0, 0, 0, 0, 0]]).T * mm  # (F, C)
+    chosen = buried(excess, 1 * mm, 5 * mm)
+    assert chosen[:, 0].tolist() == [False, True, True, True, False, False, False, False, False]
+    assert not chosen[:, 1].any()
 
 
 def test_the_source_rests_its_palm_on_the_thigh_fingers_on_it(job: Job) -> None:
