@@ -67,8 +67,9 @@ def thigh_case() -> dict[str, Any]:
     from retarget_core.io.gltf_write import write_glb
     from retarget_core.jobs import JobInputs
     from retarget_core.mapping import map_joints
+    from retarget_core.measure import torch_threads
     from retarget_core.options import RetargetOptions
-    from retarget_core.pipeline import prepare, refine, refine_context
+    from retarget_core.pipeline import PIPELINE_THREADS, prepare, refine, refine_context
     from retarget_core.refine import load_stage
     from tests.core.test_fingers_on_thigh import finger_body, hand_on_thigh_motion
 
@@ -80,9 +81,10 @@ def thigh_case() -> dict[str, Any]:
         write_glb(finger_body("male_bulky", "game_engine"), None, Path(tmp) / "t.glb")
         opts = RetargetOptions(stages={"fingers": False})
         prepared = prepare(JobInputs(Path(tmp) / "s.glb", Path(tmp) / "t.glb", options=opts))
-    without = refine(prepared).after
-    t0 = time.perf_counter()
-    outcome = load_stage("fingers")(refine_context(prepared, RetargetOptions()), without)
+    with torch_threads(PIPELINE_THREADS):  # as a job runs it
+        without = refine(prepared).after
+        t0 = time.perf_counter()
+        outcome = load_stage("fingers")(refine_context(prepared, RetargetOptions()), without)
     return {"frames": without.num_frames, "stage_s": round(time.perf_counter() - t0, 3), "report": outcome.report}
 
 

@@ -173,11 +173,11 @@ def over_clip(ctx: RefineContext, local: Tensor, trans: Tensor, measure: Callabl
     return torch.cat(parts) if parts else local.new_zeros(0)
 
 
-def sinking(ctx: RefineContext, fv: FingerVertices, local: Tensor, trans: Tensor, num_chains: int,
-            level: int = 0) -> Tensor:  # fmt: skip
+def sinking(ctx: RefineContext, fv: FingerVertices, local: Tensor, trans: Tensor, num_chains: int, level: int = 0,
+            chains: Tensor | None = None) -> Tensor:  # fmt: skip
     """Deepest vertex ``(F, C)`` (m, the body's scale) of every chain from its ``level``-th joint on, on frames
-    ``local (F, J, 4)``, ``trans (F, J, 3)``."""
-    rows = torch.arange(len(fv.index))
+    ``local (F, J, 4)``, ``trans (F, J, 3)`` (``chains (C,)``: only these measured, the others 0)."""
+    rows = torch.arange(len(fv.index)) if chains is None else torch.nonzero(chains[fv.chain]).flatten()
     return over_clip(ctx, local, trans,
                      lambda g, p: chain_depths(finger_depths(ctx, fv, rows, g, p), fv, rows, num_chains, level))  # fmt: skip
 

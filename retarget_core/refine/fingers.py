@@ -449,14 +449,21 @@ def buried(excess: Tensor, tol: float, allowance: float) -> Tensor:
 def solve_level(job: Level, params: FingerParams, deep: Tensor, palm: Tensor) -> Tensor:
     """Turns ``(F, C, 2)`` (degrees: flexion, spread) of every chain's ``job.level``-th joint over the clip (module
     doc): measured on the frames where a finger sinks beyond its palm from that joint on (``deep (F, C)``; ``palm
-    (F, C)`` its palm's depth, m), one ray per run of them, eased in and out."""
+    (F, C)`` its palm's depth, m), one ray per run of them, eased in and out. Joints that also spread (the thumb's
+    first) and hinges are searched apart, each on its own rays."""
+    spreads = torch.tensor([job.level < len(c.joints) and float(c.spread[job.level]) > 0 for c in job.chains])
+    turns = job.motion.rotations.new_zeros(deep.shape[0], len(job.chains), 2)
+    for members, spread in ((spreads, True), (~spreads, False)):
+        if bool((deep & members).any()):
+            turns += solve_rays(job, params, deep & members, palm, candidates(params, spread))
+    return turns
+
+
+def solve_rays(job: Level, params: FingerParams, deep: Tensor, palm: Tensor, cand: Candidates) -> Tensor:
+    """:func:`solve_level`'s turns ``(F, C, 2)`` of the chains that sink somewhere in ``deep (F, C)``, on the rays
+    ``cand`` (0 for the others)."""
     tol = params.tolerance_m * job.ctx.target.height / REFERENCE_HEIGHT_M
-    local = job.motion.rotations
     frames = torch.nonzero(deep.any(1)).flatten()
-    turns = local.new_zeros(local.shape[0], len(job.chains), 2)
-    if len(frames) == 0:
-        return turns
-    cand = candidates(params, any(job.level < len(c.joints) and float(c.spread[job.level]) > 0 for c in job.chains))
     size = max(1, POSES_PER_BATCH // len(cand.turns))
     sinks = deep[frames]
     found = Needs.cat([needs(job, pose, palm[frames[idx]], sinks[idx], cand, tol)
@@ -464,7 +471,7 @@ def solve_level(job: Level, params: FingerParams, deep: Tensor, palm: Tensor) ->
     half = ease_frames(params, job.motion.fps)
     ray, radius, clears = choose(found, frames, 2 * half)
     radius = refined(job, frames, cand.dirs[ray], radius, clears & (radius > 0), found, params.step_deg)
-    full = local.new_zeros(local.shape[0], len(job.chains))
+    full = palm.new_zeros(deep.shape)
     full[frames] = radius
     cap = torch.full_like(full, math.inf)
     cap[frames] = found.cap.gather(0, ray[None])[0]
@@ -472,11 +479,12 @@ def solve_level(job: Level, params: FingerParams, deep: Tensor, palm: Tensor) ->
     return dilate_smooth(full, half).minimum(cap)[..., None] * cand.dirs[ray[nearest]]
 
 
-def sinking_on(ctx: RefineContext, fv: FingerVertices, motion: Motion, frames: Tensor, num_chains: int,
-               level: int = 0) -> Tensor:  # fmt: skip
-    """:func:`sinking` ``(F, C)`` measured on ``frames (n,)`` only (0 on the others)."""
-    out = motion.rotations.new_zeros(motion.num_frames, num_chains)
-    out[frames] = sinking(ctx, fv, motion.rotations[frames], motion.translations[frames], num_chains, level)
+def sinking_on(ctx: RefineContext, fv: FingerVertices, motion: Motion, reach: Tensor, level: int = 0) -> Tensor:
+    """:func:`sinking` ``(F, C)`` measured where ``reach (F, C)`` only: its frames and chains (0 on the others)."""
+    out = motion.rotations.new_zeros(reach.shape)
+    frames = torch.nonzero(reach.any(1)).flatten()
+    out[frames] = sinking(ctx, fv, motion.rotations[frames], motion.translations[frames], reach.shape[1], level,
+                          reach.any(0))  # fmt: skip
     return out
 
 
@@ -489,12 +497,10 @@ def turn_levels(ctx: RefineContext, fv: FingerVertices, chains: list[FingerChain
     local = motion.rotations.clone()
     levels = max(len(c.joints) for c in chains)
     turns = local.new_zeros(local.shape[0], levels, len(chains), 2)
-    near, tol = torch.nonzero(reach.any(1)).flatten(), params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
+    tol = params.tolerance_m * ctx.target.height / REFERENCE_HEIGHT_M
     for level in range(levels):
         job = Level(ctx, fv, chains, level, replace(motion, rotations=local))
-        deep = (
-            chosen if level == 0 else reach & (sinking_on(ctx, fv, job.motion, near, len(chains), level) > palm + tol)
-        )
+        deep = chosen if level == 0 else reach & (sinking_on(ctx, fv, job.motion, reach, level) > palm + tol)
         turns[:, level] = solve_level(job, params, deep, palm)
         f = torch.nonzero((turns[:, level] != 0).flatten(1).any(1)).flatten()
         pose = job.pose(f, f.new_zeros(0))
@@ -526,9 +532,7 @@ def clear_fingers(ctx: RefineContext, motion: Motion, params: FingerParams) -> t
     # Later joints and the final check look only where a turn can reach: the chosen frames and their easing.
     reach = dilate_smooth(chosen.to(first.dtype), 2 * ease_frames(params, motion.fps)) > 0
     local, turns = turn_levels(ctx, fv, chains, motion, params, chosen, palm, reach)
-    near = torch.nonzero(reach.any(1)).flatten()
-    after = sinking_on(ctx, fv, replace(motion, rotations=local), near, len(chains))
-    after = torch.where(reach.any(1, keepdim=True), after, first)
+    after = torch.where(reach, sinking_on(ctx, fv, replace(motion, rotations=local), reach), first)
     moved = (turns != 0).any(-1)  # (F, level, C)
     return local, {
         **report,
