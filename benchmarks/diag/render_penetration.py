@@ -170,7 +170,8 @@ def render_frame(clip: str, character: Character, parts: BodyParts, sdf: PartSDF
     faces = character.faces.numpy()
     seg_cluster = np.asarray(parts.cluster)
     cluster_of = seg_cluster[parts.vertex_part.numpy()]
-    face_cluster = seg_cluster[parts.face_part.numpy()]
+    face_cluster = seg_cluster[parts.face_part.numpy()]  # over parts.faces: the body's, less accessory meshes'
+    body_faces = parts.faces.numpy()
     folds = int((counted.geodesic < FOLD_BAND_M / k180).sum())
     lines, table = summary_lines(counted, cluster_of, seg_cluster, parts.names, k180)
     fig = plt.figure(figsize=(17, 4.6), dpi=70)
@@ -195,11 +196,11 @@ def render_frame(clip: str, character: Character, parts: BodyParts, sdf: PartSDF
         draw_xray(ax, verts, faces, counted, cluster_of, (18, 45 + facing), k180, origin, radius)
         ax.set_title(f"close-up around the deepest ({counted.depth.max() * k180 * 100:.1f} cm)", fontsize=9)
         ax = fig.add_subplot(1, 5, 4)
-        draw_section(ax, verts, faces, face_cluster, counted, cluster_of, origin, np.array([0.0, 1.0, 0.0]),
+        draw_section(ax, verts, body_faces, face_cluster, counted, cluster_of, origin, np.array([0.0, 1.0, 0.0]),
                      np.cross(side, [0.0, 1.0, 0.0]), radius, k180)  # fmt: skip
         ax.set_title("horizontal section through the deepest", fontsize=9)
         ax = fig.add_subplot(1, 5, 5)
-        draw_section(ax, verts, faces, face_cluster, counted, cluster_of, origin, side, np.array([0.0, 1.0, 0.0]),
+        draw_section(ax, verts, body_faces, face_cluster, counted, cluster_of, origin, side, np.array([0.0, 1.0, 0.0]),
                      radius, k180)  # fmt: skip
         ax.set_title("sagittal section through the deepest", fontsize=9)
     handles = [plt.Line2D([], [], color=c, marker="o", lw=0, label=n) for n, c in PART_COLORS.items()]
