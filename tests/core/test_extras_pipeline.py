@@ -1,6 +1,6 @@
 """Extra joints through the whole job: a real MakeHuman body on the Mixamo rig (fingers curling) retargeted onto
-another on the Unreal-style rig: every refinement stage before finger clearance keeps the copy's finger rotations
-(finger clearance, switched off here, turns only fingers that sink into the body: tests/core/test_fingers_on_thigh.py),
+another on the Unreal-style rig: every refinement stage of the default chain keeps the copy's finger rotations (no
+finger sinks into the body here; where one does, finger clearance turns it: tests/core/test_fingers_on_thigh.py),
 and the result GLB animates the fingers and passes the Khronos validator."""
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def finger_job(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple
     walk = Motion(walk.skeleton, walk.fps, walk.rotations[:FRAMES], walk.translations[:FRAMES], "walk")
     write_glb(source_char, _curl(walk, smap, FRAMES), tmp / "source.glb", clip_name="walk")
     write_glb(finger_body("male_bulky", "game_engine"), None, tmp / "target.glb")
-    inputs = JobInputs(tmp / "source.glb", tmp / "target.glb", options=RetargetOptions(stages={"fingers": False}))
+    inputs = JobInputs(tmp / "source.glb", tmp / "target.glb", options=RetargetOptions())
     prepared = prepare(inputs)
     return prepared, refine(prepared), tmp
 
