@@ -129,14 +129,15 @@ def cache_dir() -> Path:
     return Path(os.environ.get(CACHE_ENV) or DEFAULT_CACHE)
 
 
-def _key(params: BodyParams) -> str:
+def body_key(params: BodyParams) -> str:
+    """The 12-hex-digit name suffix of a body's cached GLB: a hash of its parameters."""
     return hashlib.sha1(params.model_dump_json().encode()).hexdigest()[:12]
 
 
 def body_path(params: BodyParams, directory: Path | None = None) -> Path:
     """The cached GLB of one held-out body, built on first use."""
     directory = Path(directory or cache_dir())
-    path = directory / f"{params.name}-{_key(params)}.glb"
+    path = directory / f"{params.name}-{body_key(params)}.glb"
     if not path.is_file():
         from retarget_core.bodies.makehuman import make_body
         from retarget_core.io.gltf_write import write_glb
@@ -158,6 +159,7 @@ __all__ = [
     "HeldoutClip",
     "HeldoutSplit",
     "body_distance",
+    "body_key",
     "body_path",
     "body_paths",
     "cache_dir",

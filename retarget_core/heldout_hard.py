@@ -97,9 +97,9 @@ def body_file(shared_data: Path, name: str, split: HardSplit | None = None) -> P
 def body_groups(shared_data: Path, split: HardSplit | None = None) -> dict[str, str]:
     """Body file stem (the table's body name) -> group: ``makehuman`` (generated bodies) or ``real``."""
     split = split or load_hard_split()
-    real = {r.name for r in split.real_characters}
-    names = split.body_names()
-    return {body_file(shared_data, n, split).stem: REAL_GROUP if n in real else MAKEHUMAN_GROUP for n in names}
+    groups = {f"{b.name}-{heldout.body_key(b)}": MAKEHUMAN_GROUP for b in split.bodies}
+    groups.update({Path(r.file).stem: REAL_GROUP for r in split.real_characters})  # no file needed, none built
+    return groups
 
 
 def split_cases(shared_data: Path, split: HardSplit | None = None) -> list[tuple[Path, Path]]:
