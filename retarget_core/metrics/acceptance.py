@@ -198,11 +198,14 @@ def _majority(labels: np.ndarray, window: int) -> np.ndarray:
 
 def planted_feet(joints: np.ndarray, rest_joints: np.ndarray, params: AcceptanceParams) -> np.ndarray:
     """Planted feet ``(F, 2)`` (left, right) from normalised joint positions ``(F, 22, 3)`` and the rest pose
-    ``(22, 3)`` standing on y = 0 (see module doc)."""
+    ``(22, 3)`` standing on y = 0 (see module doc). A rig without a toe joint (NaN) is labelled by its ankle,
+    as :func:`retarget_core.metrics.feet_acceptance.foot_joint_pairs` does, not left unplanted on every frame."""
     f_n = joints.shape[0]
     raw = np.zeros((f_n, 2), dtype=bool)
     for k, side in enumerate(("Left", "Right")):
         toe, ankle = CANONICAL_JOINTS.index(f"{side}ToeBase"), CANONICAL_JOINTS.index(f"{side}Foot")
+        if np.isnan(joints[:, toe]).any() or np.isnan(rest_joints[toe]).any():
+            toe = ankle
         t, a = joints[:, toe], joints[:, ankle]
         if np.isnan(t).any() or np.isnan(a).any() or f_n == 0:
             continue

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -227,6 +228,18 @@ def test_feet_lifted_are_not_planted_and_float_is_measured(shared_bodies) -> Non
     fig = acceptance_figures(character, mapping, lifted, character, mapping, standing)
     assert fig.foot_accuracy == 0.0  # toes 5 cm above their rest height: not planted
     assert fig.float_cm == pytest.approx(5.0, abs=0.01)
+
+
+def test_a_rig_without_toe_joints_is_labelled_by_its_ankles(shared_bodies) -> None:
+    """Quaternius-style rigs have no ToeBase: the ankle stands in, as in the metrics' feet figures."""
+    character, mapping = shared_bodies[0]
+    toeless = dataclasses.replace(mapping, joints={k: v for k, v in mapping.joints.items() if "ToeBase" not in k})
+    standing = still(character, 8)
+    lifted = Motion(standing.skeleton, 30.0, standing.rotations.clone(), standing.translations.clone(), "lifted")
+    root = standing.skeleton.parents.index(-1)
+    lifted.translations[:, root, 1] += 0.05 * character.height / 1.80
+    assert acceptance_figures(character, toeless, standing, character, mapping, standing).foot_accuracy == 1.0
+    assert acceptance_figures(character, toeless, lifted, character, mapping, standing).foot_accuracy == 0.0
 
 
 def test_targets_table() -> None:
