@@ -243,6 +243,10 @@ def evaluate(
         str | None, typer.Option(help="Write each clip as a GLB on this body first and use that (as a studio sends it)")
     ] = None,
     jobs: Annotated[int, typer.Option(help="Clips evaluated in parallel processes (one torch thread each)")] = 1,
+    only: Annotated[
+        list[str] | None,
+        typer.Option(help="With --split: run only the cases whose clip or body name contains this; repeatable"),
+    ] = None,
 ) -> None:
     """Run methods over motions x bodies; print and write the acceptance figures by body and clip group."""
     from retarget_core.evaluation import ABLATION, run_evaluation
@@ -255,7 +259,7 @@ def evaluate(
     files: list[Path] = []
     bodies: list[str | Path] = []
     if split_name is not None:
-        cases, groups = _split_cases(split_name, shared_data)
+        cases, groups = _split_cases(split_name, shared_data, only or [])
         source_glb_body = source_glb_body or _heldout_source_body()
     elif heldout is not None:
         from retarget_core import heldout as split
@@ -282,17 +286,23 @@ def evaluate(
     console.print(f"wrote {out / 'eval.json'} and {out / 'eval.md'}")
 
 
-def _split_cases(split: str, shared_data: Path) -> tuple[list[tuple[Path, str | Path]], dict[str, str]]:
-    """The named split's fixed cases (clip file, body file) and its body groups; exits on a missing file."""
+def _split_cases(
+    split: str, shared_data: Path, only: list[str]
+) -> tuple[list[tuple[Path, str | Path]], dict[str, str]]:
+    """The named split's fixed cases (clip file, body file; those naming one of ``only`` when given) and its body
+    groups; exits on a missing file or when no case matches."""
     if split != "hard":
         _fail(f"unknown split {split!r}; available: hard")
     from retarget_core import heldout_hard
 
     try:
-        cases: list[tuple[Path, str | Path]] = list(heldout_hard.split_cases(shared_data))
+        cases: list[tuple[Path, str | Path]] = list(heldout_hard.split_cases(shared_data, only=only))
         return cases, heldout_hard.body_groups(shared_data)
     except FileNotFoundError as exc:
         _fail(f"{exc} (give the shared data folder with --shared-data)")
+        raise
+    except ValueError as exc:
+        _fail(str(exc))
         raise
 
 

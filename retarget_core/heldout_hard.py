@@ -102,12 +102,18 @@ def body_groups(shared_data: Path, split: HardSplit | None = None) -> dict[str, 
     return groups
 
 
-def split_cases(shared_data: Path, split: HardSplit | None = None) -> list[tuple[Path, Path]]:
-    """The fixed cases as (clip file, body file), in the split's order; every file must be there."""
+def split_cases(
+    shared_data: Path, split: HardSplit | None = None, only: list[str] | None = None
+) -> list[tuple[Path, Path]]:
+    """The fixed cases as (clip file, body file), in the split's order; with ``only``, those whose clip or body
+    name contains one of its strings (none matching raises ValueError). Every file of a kept case must be there."""
     split = split or load_hard_split()
-    clips = {c.name: clip_file(shared_data, c) for c in split.clips}
-    bodies = {name: body_file(shared_data, name, split) for name in split.body_names()}
-    return [(clips[clip], bodies[body]) for clip, body in split.cases]
+    names = [(c, b) for c, b in split.cases if not only or any(o in c or o in b for o in only)]
+    if not names:
+        raise ValueError(f"no case of the hard split names any of {only}")
+    clips = {c.name: clip_file(shared_data, c) for c in split.clips if any(c.name == n for n, _ in names)}
+    bodies = {b: body_file(shared_data, b, split) for b in dict.fromkeys(b for _, b in names)}
+    return [(clips[clip], bodies[body]) for clip, body in names]
 
 
 __all__ = [

@@ -70,6 +70,16 @@ def test_group_cases_keeps_the_order_and_refuses_repeats() -> None:
         group_cases([(a, "x"), (a, "x")])
 
 
+def test_split_cases_keeps_only_the_named_cases(shared_data: Path) -> None:
+    split = heldout_hard.load_hard_split()
+    cases = heldout_hard.split_cases(shared_data, split, only=["002_08"])  # a shared clip on generated bodies
+    expected = [(c, b) for c, b in split.cases if c == "002_08"]
+    assert len(expected) == 3
+    assert [(p.stem, q.stem.split("-")[0]) for p, q in cases] == expected
+    with pytest.raises(ValueError, match="no case"):
+        heldout_hard.split_cases(shared_data, split, only=["no-such-clip"])
+
+
 def _real_character_or_skip(shared_data: Path, name: str, split: heldout_hard.HardSplit) -> Path:
     """The fetched character's file; skips where the shared data lacks it (it is not in a plain checkout)."""
     try:
