@@ -129,15 +129,15 @@ def cache_dir() -> Path:
     return Path(os.environ.get(CACHE_ENV) or DEFAULT_CACHE)
 
 
-def body_key(params: BodyParams) -> str:
-    """The 12-hex-digit name suffix of a body's cached GLB: a hash of its parameters."""
-    return hashlib.sha1(params.model_dump_json().encode()).hexdigest()[:12]
+def body_stem(params: BodyParams) -> str:
+    """The file stem of a body's cached GLB: its name and a 12-hex-digit hash of its parameters."""
+    return f"{params.name}-{hashlib.sha1(params.model_dump_json().encode()).hexdigest()[:12]}"
 
 
 def body_path(params: BodyParams, directory: Path | None = None) -> Path:
     """The cached GLB of one held-out body, built on first use."""
     directory = Path(directory or cache_dir())
-    path = directory / f"{params.name}-{body_key(params)}.glb"
+    path = directory / f"{body_stem(params)}.glb"
     if not path.is_file():
         from retarget_core.bodies.makehuman import make_body
         from retarget_core.io.gltf_write import write_glb
@@ -159,9 +159,9 @@ __all__ = [
     "HeldoutClip",
     "HeldoutSplit",
     "body_distance",
-    "body_key",
     "body_path",
     "body_paths",
+    "body_stem",
     "cache_dir",
     "clip_paths",
     "heldout_clip_names",

@@ -97,7 +97,7 @@ def body_file(shared_data: Path, name: str, split: HardSplit | None = None) -> P
 def body_groups(shared_data: Path, split: HardSplit | None = None) -> dict[str, str]:
     """Body file stem (the table's body name) -> group: ``makehuman`` (generated bodies) or ``real``."""
     split = split or load_hard_split()
-    groups = {f"{b.name}-{heldout.body_key(b)}": MAKEHUMAN_GROUP for b in split.bodies}
+    groups = {heldout.body_stem(b): MAKEHUMAN_GROUP for b in split.bodies}
     groups.update({Path(r.file).stem: REAL_GROUP for r in split.real_characters})  # no file needed, none built
     return groups
 
@@ -111,7 +111,8 @@ def split_cases(
     names = [(c, b) for c, b in split.cases if not only or any(o in c or o in b for o in only)]
     if not names:
         raise ValueError(f"no case of the hard split names any of {only}")
-    clips = {c.name: clip_file(shared_data, c) for c in split.clips if any(c.name == n for n, _ in names)}
+    wanted = {c for c, _ in names}
+    clips = {c.name: clip_file(shared_data, c) for c in split.clips if c.name in wanted}
     bodies = {b: body_file(shared_data, b, split) for b in dict.fromkeys(b for _, b in names)}
     return [(clips[clip], bodies[body]) for clip, body in names]
 

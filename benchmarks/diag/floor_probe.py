@@ -19,7 +19,7 @@ from retarget_core.metrics.feet_acceptance import lowest_vertex_heights
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import refinement_stages
-from retarget_core.refine.temporal import smoothstep
+from retarget_core.refine.temporal import fallback_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
 from benchmarks.common import case_parser, prepare_case  # noqa: E402
@@ -30,13 +30,12 @@ RAMPS = (4, 8, 16)  # frames at 30 fps
 
 
 def lift_envelope(depth: Tensor, ramp: int) -> Tensor:
-    """``(F,)`` root lift: at least ``depth (F,)`` (m, >= 0) on every frame, fading to 0 over ``ramp`` frames."""
-    sunk = torch.nonzero(depth > 0).flatten()
-    if len(sunk) == 0:
+    """``(F,)`` root lift: at least ``depth (F,)`` (m, >= 0) on every frame, fading to 0 over ``ramp`` frames (the
+    never-worse blend's envelope, :func:`fallback_weights`, on caps ``1 - depth / max depth``)."""
+    deepest = float(depth.max()) if len(depth) else 0.0
+    if deepest <= 0.0:
         return torch.zeros_like(depth)
-    t = torch.arange(len(depth), dtype=depth.dtype)
-    fade = 1 - smoothstep((t[:, None] - sunk[None, :].to(depth.dtype)).abs() / ramp)
-    return (depth[sunk][None, :] * fade).amax(1)
+    return deepest * (1.0 - fallback_weights(1.0 - depth / deepest, ramp).to(depth.dtype))
 
 
 def main() -> None:
