@@ -2,17 +2,25 @@
 
 Mapping (after the 22 canonical joints are mapped, so the hands, feet and limbs are known):
 
-* **Fingers** are searched only below each mapped hand, so their side is the hand's (a finger named for the other
-  side is reported, not mapped). A joint names its finger by a finger token (``thumb``, ``index``, ``middle``/
-  ``mid``, ``ring``, ``pinky``/``little``) or by ``finger`` + its number (MakeHuman's ``finger2-1.L`` is the
-  index); a metacarpal by ``metacarpal``/``palm`` (+ 1..4 = index..pinky when no finger token names it).
-  A finger's joints are numbered along the chain from the hand: the metacarpal is segment 0 (``LeftHandIndex0``),
-  the next three joints segments 1..3; a fourth (Mixamo's ``LeftHandIndex4``, a tip) is not mapped. The thumb has
-  no segment 0: its first joint is ``Thumb1`` in every convention (Mixamo ``Thumb1``, Unreal ``thumb_01``, VRM 1
-  ``thumbMetacarpal``, VRM 0 ``thumbProximal``). Where the hand's children carry no finger names at all, chains
-  of two or more joints below the hand are taken as fingers by structure: the thumb is the chain whose first bone
-  leaves the hand furthest from the mean finger direction (when it clearly does), the others are ordered from the
-  thumb side (confidence 0.45, a warning says so).
+* **Fingers** are searched below each mapped hand (a thumb also beside it, below), so their side is the hand's (a
+  finger named for the other side is reported, not mapped). A joint names its finger by a finger token (``thumb``,
+  ``index``, ``middle``/``mid``, ``ring``, ``pinky``/``little``) or by ``finger`` + its number (MakeHuman's
+  ``finger2-1.L`` is the index); a metacarpal by ``metacarpal``/``palm`` (+ 1..4 = index..pinky when no finger token
+  names it). A finger's joints are numbered along the chain from the hand: the metacarpal is segment 0
+  (``LeftHandIndex0``), the next three joints segments 1..3; a fourth (Mixamo's ``LeftHandIndex4``, a tip) is not
+  mapped. The thumb has no segment 0: its first joint is ``Thumb1`` in every convention (Mixamo ``Thumb1``, Unreal
+  ``thumb_01``, VRM 1 ``thumbMetacarpal``, VRM 0 ``thumbProximal``). Where the hand's children carry no finger names
+  at all, chains of two or more joints below the hand are taken as fingers by structure: the thumb is the chain
+  whose first bone leaves the hand furthest from the mean finger direction (when it clearly does), the others are
+  ordered from the thumb side (confidence 0.45, a warning says so).
+* **Thumbs beside the hand**: when nothing below the hand is a thumb, thumb-named joints of that side that hang
+  from the hand's parent (the forearm, or an in-chain segment below it) are the thumb, numbered the same way
+  (Quaternius' ``Thumb1.L``, ``Thumb2.L`` beside ``Fist.L``; confidence 0.8, a warning says they hang from the
+  forearm). The copy sets their world rotation, so they turn with the hand as the source's thumb does.
+* **Mittens**: where the hand's joints carry no finger names, one chain of joints below it named like the hand
+  (Quaternius' ``Fist1.L``, ``Fist2.L`` below ``Fist.L``: four fingers fused in one block) is mapped as the middle
+  finger, segments 1..3, so the block curls as the source's middle finger (confidence 0.6, a warning says so, and
+  another names any joint that hangs from a mitten segment, a held prop that turns with the curl).
 * **Toes** likewise below each mapped foot (``BigToe1``.., from ``big toe``/``hallux`` or ``toe`` + its number),
   segments 1..3 along the chain; the joint mapped as ToeBase is never a toe segment.
 * **Twist bones**: a joint named ``twist``/``roll`` below a mapped Arm, ForeArm, UpLeg or Leg and not below the
@@ -66,8 +74,11 @@ CONF_NAME = 0.9  # a finger/toe named and numbered along a chain below the right
 CONF_TWIST_NAME = 0.9
 CONF_TWIST_CHAIN = 0.7  # an in-chain segment named like its limb
 CONF_STRUCTURE = 0.45  # fingers found from the chains alone
+CONF_MITTEN = 0.6  # a mitten's segments (joints below the hand named like the hand), mapped as the middle finger
+CONF_BESIDE = 0.8  # a thumb named for its side that hangs from the forearm beside the hand
 THUMB_MIN_SPREAD_DEG = 25.0  # the thumb's first bone leaves the hand at least this far from the mean finger
 SHARE_SUFFIX = ".share"
+END_SITE_TOKENS = frozenset({"end", "site", "nub", "tip"})  # a leaf marking a bone's end, not something carried
 LIMB_END: dict[str, str] = {"Arm": "ForeArm", "ForeArm": "Hand", "UpLeg": "Leg", "Leg": "Foot"}
 LIMB_PARENT: dict[str, tuple[str, ...]] = {
     "Arm": ("Shoulder",), "ForeArm": ("Arm",), "UpLeg": (), "Leg": ("UpLeg",),
@@ -257,19 +268,80 @@ class _ExtraMapper:
         return groups
 
     def map_fingers(self, side: str, hand: int) -> None:
+        """Fingers by name below the hand, else a mitten, else by structure; then a thumb beside the hand."""
         groups = self.digits_by_name(side, hand)
-        if not groups:
+        if groups:
+            for finger, joints in groups.items():
+                metas = [j for j, dn in joints if dn.metacarpal] if finger != "Thumb" else []
+                if metas:
+                    self.put(f"{side}Hand{finger}0", metas[0], CONF_NAME, "name")
+                self.put_segments(f"{side}Hand{finger}", [j for j, _ in joints if j not in metas], CONF_NAME)
+        elif not self.mitten(side, hand):
             self.fingers_by_structure(side, hand)
+        if not any(n.startswith(f"{side}HandThumb") for n in self.found):
+            self.thumb_beside_hand(side, hand)
+
+    def put_segments(self, prefix: str, joints: list[int], conf: float) -> list[str]:
+        """Number ``joints`` (sorted by depth) 1..3 by tree distance from the first, a skipped joint leaving a gap;
+        returns the names put."""
+        names = []
+        for j in joints:
+            k = self.depth[j] - self.depth[joints[0]] + 1
+            if k <= 3:
+                self.put(f"{prefix}{k}", j, conf, "name")
+                names.append(f"{prefix}{k}")
+        return names
+
+    def mitten(self, side: str, hand: int) -> bool:
+        """A mitten: one chain of joints below the hand named like the hand and for no finger (Quaternius
+        ``Fist1.L``, ``Fist2.L`` below ``Fist.L``), the four fingers fused in one block. Its segments are mapped
+        as the middle finger's, so the block curls as the source's middle finger does."""
+        from retarget_core.mapping import analyse_name
+
+        joints = []
+        for j in self.below(hand):
+            info = analyse_name(self.sk.names[j])
+            plain = not (info.ignored or info.helper or info.finger) and info.side in (None, side)
+            if plain and info.scores.get("Hand", 0.0) > 0.0 and finger_name(self.sk.names[j]).digit is None:
+                joints.append(j)
+        joints.sort(key=lambda j: (self.depth[j], j))
+        if not joints or not all(self.is_ancestor(a, b) for a, b in zip(joints, joints[1:], strict=False)):
+            return False  # none, or branching: not one fused block
+        names = self.put_segments(f"{side}HandMiddle", joints, CONF_MITTEN)
+        listed = ", ".join(repr(self.sk.names[j]) for j in joints)
+        self.warn(f"the {side.lower()} hand is a mitten ({listed}: one block of four fingers): mapped as "
+                  f"{', '.join(names)}, it curls as the source's middle finger")  # fmt: skip
+        for name, j in zip(names, joints, strict=False):
+            for c in self.children[j]:
+                if c not in joints and not END_SITE_TOKENS & set(_tokens(self.sk.names[c])):
+                    prop, seg = self.sk.names[c], self.sk.names[j]
+                    self.warn(f"{prop!r} (a held prop?) hangs from {seg!r}, mapped as {name}: it turns with the "
+                              f"mitten's curl; override {name} to null to hold it still")  # fmt: skip
+        return True
+
+    def thumb_beside_hand(self, side: str, hand: int) -> None:
+        """Thumb joints hanging from the hand's parent (the forearm, or a segment below it) beside the hand, not
+        below it (Quaternius' mitten rigs), mapped as the side's thumb when the hand has none below it."""
+        parent = self.sk.parents[hand]
+        fore = self.map.joints.get(side + "ForeArm")
+        if parent < 0 or fore is None or (parent != fore and not self.is_ancestor(fore, parent)):
             return
-        for finger, joints in groups.items():
-            metas = [j for j, dn in joints if dn.metacarpal] if finger != "Thumb" else []
-            rest = [j for j, _ in joints if j not in metas]
-            if metas:
-                self.put(f"{side}Hand{finger}0", metas[0], CONF_NAME, "name")
-            for j in rest:
-                k = self.depth[j] - self.depth[rest[0]] + 1  # by tree distance: a skipped joint leaves a gap
-                if k <= 3:
-                    self.put(f"{side}Hand{finger}{k}", j, CONF_NAME, "name")
+        thumbs = []
+        for j in self.below(parent):  # stops at canonical joints: never inside the hand, nor another limb
+            dn = finger_name(self.sk.names[j])
+            if dn.digit == "Thumb" and not dn.ignored and dn.side in (None, side) and j not in self.found_joints():
+                thumbs.append(j)
+        if not thumbs:
+            return
+        thumbs.sort(key=lambda j: (self.depth[j], j))
+        names = self.put_segments(f"{side}HandThumb", thumbs, CONF_BESIDE)
+        self.warn(f"{', '.join(repr(self.sk.names[j]) for j in thumbs)} hang from the forearm "
+                  f"{self.sk.names[parent]!r}, beside the {side.lower()} hand, not below it: mapped as "
+                  f"{', '.join(names)} (they turn with the source's thumb, set in world space)")  # fmt: skip
+
+    def found_joints(self) -> set[int]:
+        """Joints already mapped as extras."""
+        return {f.joint for f in self.found.values()}
 
     def chain(self, start: int) -> list[int]:
         """``start`` and the joints below it while each has exactly one child."""

@@ -14,7 +14,7 @@ from retarget_core import rotations as rot
 from retarget_core.canonical import EXTRA_JOINTS, FINGERS
 from retarget_core.copy_retarget import copy_retarget, rest_alignment
 from retarget_core.errors import MappingError
-from retarget_core.extras import digit_pairs, transfer_notes, twist_angle
+from retarget_core.extras import digit_alignment, digit_line, digit_pairs, transfer_notes, twist_angle
 from retarget_core.io.vrm import humanoid_canonical, humanoid_extras
 from retarget_core.mapping import load_override, map_joints
 from retarget_core.motion import Motion
@@ -172,6 +172,30 @@ J_Bip_C_Hips 0 95 0
 """
 
 
+MITTEN = """
+Hips 0 95 0
+  Abdomen 0 10 0
+    Torso 0 15 0
+      Neck 0 20 0
+        Head 0 10 0
+      Shoulder.{S} 4 15 0
+        UpperArm.{S} 12 0 0
+          LowerArm.{S} 27 0 0
+            Fist.{S} 25 0 0
+              Fist1.{S} 8 -1 1
+                Fist2.{S} 6 0 0
+                Weapon.{S} 1 0 1
+            Thumb1.{S} 25 0 0
+              Thumb2.{S} 3 -1 3
+  UpperLeg.{S} 9 -5 0
+    LowerLeg.{S} 0 -42 0
+      Foot.{S} 0 -42 0
+"""
+"""Synthetic outline of Quaternius' "RPG Characters" hands (as quaternius_cleric.gltf, which CI lacks): a mitten
+(``Fist1``, ``Fist2`` below ``Fist``, a weapon joint on ``Fist1``) and a thumb hanging from the forearm, its first
+joint at the wrist, beside the fist."""
+
+
 def _expect(sk: Skeleton, expected: dict[str, str]) -> None:
     mapping = map_joints(sk)
     got = _names(sk, mapping)
@@ -234,6 +258,26 @@ def test_unnamed_fingers_from_the_structure() -> None:
     assert got["LeftHandThumb1"] == "b1.01.L" and got["LeftHandIndex1"] == "b2.L" and got["RightHandMiddle1"] == "b4.R"
     assert all(mapping.extra_method[n] == "structure" and mapping.extra_confidence[n] < 0.5 for n in got)
     assert any("no names" in w for w in mapping.warnings)
+
+
+def test_thumb_beside_the_hand_and_a_mitten() -> None:
+    """Thumbs hanging from the forearm beside the fist are the thumbs (a warning says where they hang), the mitten
+    segments the middle finger (a joint hanging from one is named); a thumb below the hand wins over one beside it,
+    and a thumb named for the other side is not taken."""
+    _expect(rig(MITTEN), {"{Side}HandThumb1": "Thumb1.{S}", "{Side}HandThumb2": "Thumb2.{S}",
+                          "{Side}HandMiddle1": "Fist1.{S}", "{Side}HandMiddle2": "Fist2.{S}"})  # fmt: skip
+    mapping = map_joints(rig(MITTEN))
+    assert mapping.extra_confidence["LeftHandThumb1"] == 0.8 and mapping.extra_confidence["RightHandMiddle2"] == 0.6
+    for side in "LR":
+        assert any(f"'Thumb1.{side}', 'Thumb2.{side}' hang from the forearm 'LowerArm.{side}'" in w
+                   for w in mapping.warnings)  # fmt: skip
+        assert any(f"'Weapon.{side}' (a held prop?) hangs from 'Fist1.{side}'" in w for w in mapping.warnings)
+    sk = rig(MITTEN.replace("            Thumb1.{S}", "              thumb_01.{S} 2 -1 3\n            Thumb1.{S}"))
+    assert _names(sk, map_joints(sk)) == {"LeftHandThumb1": "thumb_01.L", "RightHandThumb1": "thumb_01.R"}
+    other_side = MITTEN.replace("Thumb1.{S}", "Thumb1.{O}").replace("Thumb2.{S}", "Thumb2.{O}")
+    sk = rig(other_side, forms={"{O}": ("R", "L")})
+    got = _names(sk, map_joints(sk))
+    assert "LeftHandMiddle1" in got and not any("Thumb" in n for n in got)
 
 
 def test_finger_named_for_the_other_side_is_not_mapped() -> None:
@@ -398,6 +442,47 @@ def test_partial_source_fingers_and_no_fingers() -> None:
     fingers = list(tmap.extras.values())
     assert torch.equal(out.rotations[:, fingers], full.rest_rotations[fingers].expand(frames, -1, -1))
     assert any("no left fingers" in n for n in transfer_notes(bmap, tmap))
+
+
+@pytest.mark.parametrize("fists", [True, False], ids=["mitten", "thumb_only"])
+def test_thumb_beside_the_hand_follows_the_source_thumb(fists: bool) -> None:
+    """The CC_Base outline's fingers curl while its wrists turn 35 degrees against the forearm. On the mitten
+    outline (and on it without the mitten: a hand with a thumb and no other finger) each thumb, a child of the
+    forearm, turns relative to the fist exactly as the source's thumb does relative to its hand, not with the
+    forearm; the mitten turns as the source's middle finger. With no knuckle line on the target (one finger or
+    none besides the thumb), the rest alignment maps each bone's rest direction onto the source's."""
+    src_sk = rig(CC_BASE)
+    smap = map_joints(src_sk)
+    curl = curl_motion(src_sk, smap, frames=12)
+    local = curl.rotations.clone()
+    wrist = about(torch.tensor([0.0, 1.0, 1.0]), torch.deg2rad(torch.linspace(0.0, 35.0, 12)))
+    for side in SIDES:
+        local[:, smap.joints[side + "Hand"]] = rot.mul(local[:, smap.joints[side + "Hand"]], wrist)
+    src = Motion(src_sk, 30.0, local, curl.translations, "wrist")
+    tgt = rig(MITTEN if fists else "\n".join(line for line in MITTEN.splitlines() if "Fist" not in line[14:]))
+    tmap = map_joints(tgt)
+    digits = ("Thumb", "Middle") if fists else ("Thumb",)
+    assert set(tmap.extras) == {f"{side}Hand{d}{k}" for side in SIDES for d in digits for k in (1, 2)}
+    res = copy_retarget(src, smap, tgt, tmap)
+    sg, tg = src.global_transforms()[0], res.global_transforms()[0]
+    for name, tj in tmap.extras.items():
+        sj, side = smap.extras[name], "Left" if name.startswith("Left") else "Right"
+        ref = tmap.joints[side + "Hand"] if name.endswith("Thumb1") else tgt.parents[tj]
+        s_rel = rot.mul(rot.inv(sg[:, src_sk.parents[sj]]), sg[:, sj])
+        t_rel = rot.mul(rot.inv(tg[:, ref]), tg[:, tj])
+        gap = (_angle(s_rel[:1], s_rel) - _angle(t_rel[:1], t_rel)).abs()
+        assert float(gap.max()) < 0.05, name
+        if name.endswith("Thumb1"):
+            fore = rot.mul(rot.inv(tg[:, tgt.parents[tj]]), tg[:, tj])  # seen from the forearm: the wrist shows
+            assert float((_angle(s_rel[:1], s_rel) - _angle(fore[:1], fore)).abs().max()) > 10.0
+    assert digit_line("Left", "Hand", tmap.extras, tgt.rest_global()[1]) is None
+    aligned = digit_alignment(src_sk, smap, tgt, tmap, rest_alignment(src_sk, smap, tgt, tmap))
+    spos, tpos = src_sk.rest_global()[1], tgt.rest_global()[1]
+    for name in ("LeftHandThumb1", "RightHandThumb1", *(("LeftHandMiddle1",) if fists else ())):
+        sj, tj, a = aligned[name]
+        nxt = name[:-1] + "2"
+        ds, dt = spos[smap.extras[nxt]] - spos[sj], tpos[tmap.extras[nxt]] - tpos[tj]
+        assert torch.allclose(rot.apply(a, dt / dt.norm()), ds / ds.norm(), atol=1e-5)
 
 
 def test_extras_leave_the_body_copy_bit_identical() -> None:

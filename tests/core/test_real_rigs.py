@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from retarget_core import rotations as rot
-from retarget_core.canonical import FINGERS
+from retarget_core.canonical import FINGERS, JointMapping
 from retarget_core.io.gltf_read import read_gltf
 from retarget_core.jobs import JobInputs, JobOutputs
 from retarget_core.loading import LoadedCharacter, load_character, load_motion
@@ -30,7 +30,9 @@ FRAMES = 30
 SOURCE = SAMPLES / "motions" / "007_03.bvh"  # CMU 07_03 on a Reallusion rig: 5 fingers x 3 segments
 FINGER_FOLLOW_DEG = 2.0
 """Largest difference between the source's and a result's turn of a finger joint since frame 0 (issue 21's
-same-convention bound; the rest-aligned copy turns a finger by the source's turn seen from its parent)."""
+same-convention bound; the rest-aligned copy turns a finger by the source's turn seen from its parent). The
+result's turn is seen from the joint mapped as the source finger's parent: the finger's own parent, or the hand
+for a thumb that hangs from the forearm (the Cleric's)."""
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,10 @@ WITCH = Rig(
 )
 CLERIC = Rig(
     "quaternius_cleric.gltf",
-    {},  # mitten hands: Fist1/Fist2 are not fingers; the thumbs hang from the forearm (see the xfail below)
+    _fingers(
+        {"Thumb1": "Thumb1.{s}", "Thumb2": "Thumb2.{s}", "Middle1": "Fist1.{s}", "Middle2": "Fist2.{s}"},
+        {"Left": "L", "Right": "R"},
+    ),  # mitten hands: the fused block Fist1/Fist2 is the middle finger; the thumbs hang from the forearm
     {"Cleric": "body", "Head": "accessory", "Cleric_Staff": "accessory", "ShoulderPads": "accessory"},
     ("'Foot.L' hangs beside the body", "'Foot.R' hangs beside the body"),
 )
@@ -110,11 +115,17 @@ def test_meshes_are_sorted_into_body_and_accessories(loaded: tuple[Rig, LoadedCh
     assert {m.name: m.role for m in lc.character.meshes} == rig.roles
 
 
-@pytest.mark.xfail(strict=True, reason="the Cleric's thumbs hang from the forearm, beside the fist: fingers are "
-                   "searched below the mapped hand only")  # fmt: skip
 def test_cleric_thumbs_are_found() -> None:
+    """The Cleric's thumbs hang from the forearm, beside the fist: mapped as the thumbs, and the report says where
+    they hang; its mitten segments are the middle finger, and the staff's joint on Fist1.R is named."""
     lc = load_character(rig_path(CLERIC.file))
     assert {"LeftHandThumb1", "RightHandThumb1"} <= set(lc.mapping.extras)
+    warnings = lc.mapping.report(lc.character.skeleton.names)["warnings"]
+    assert isinstance(warnings, list)
+    for side in ("L", "R"):
+        assert any(f"'Thumb1.{side}', 'Thumb2.{side}' hang from the forearm 'LowerArm.{side}'" in w for w in warnings)
+        assert any(f"mitten ('Fist1.{side}', 'Fist2.{side}'" in w for w in warnings)
+    assert any("'Weapon.R' (a held prop?) hangs from 'Fist1.R'" in w for w in warnings)
 
 
 _JOBS: dict[str, JobOutputs] = {}
@@ -140,8 +151,8 @@ def test_default_job_writes_a_valid_glb_and_metrics(rig: Rig, tmp_path_factory: 
 
 @pytest.mark.parametrize("rig", RIGS, ids=lambda r: r.file)
 def test_result_keys_every_frame_of_the_driven_joints_only(rig: Rig, tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Mapped fingers are keyed on every frame; joints the source does not drive (a mitten's segments, pole
-    targets, finger tips) are written once."""
+    """Mapped fingers are keyed on every frame; joints the source does not drive (pole targets, finger tips, the
+    Cleric's staff joint) are written once."""
     outputs = run_rig_job(rig, tmp_path_factory)
     lc = load_character(rig_path(rig.file))
     sk = lc.character.skeleton
@@ -155,15 +166,21 @@ def test_result_keys_every_frame_of_the_driven_joints_only(rig: Rig, tmp_path_fa
 
 
 def _finger_gaps(rig: Rig, glb: Path) -> dict[str, torch.Tensor]:
-    """Per mapped finger, ``(F,)`` degrees between the source's turn since frame 0 and the GLB's (module doc of
-    :data:`FINGER_FOLLOW_DEG`); fails unless the source's fingers do move in these frames."""
+    """Per mapped finger, ``(F,)`` degrees between the source's turn since frame 0 and the GLB's, each seen from
+    the joint mapped as the source finger's parent (module doc of :data:`FINGER_FOLLOW_DEG`); fails unless the
+    source's fingers do move in these frames."""
     source = load_motion(SOURCE)
     motion = read_gltf(glb).motions[0]
     assert motion.num_frames == FRAMES and motion.fps == source.motion.fps
+    sk, target = motion.skeleton, load_character(rig_path(rig.file))
+    grot = motion.global_transforms()[0]
     gaps, turned = {}, 0.0
     for extra, joint in rig.extras.items():
-        src_turn = _turn(source.motion.rotations[:FRAMES, source.mapping.extras[extra]])
-        gaps[extra] = (src_turn - _turn(motion.rotations[:, motion.skeleton.index(joint)])).abs()
+        src_joint = source.mapping.extras[extra]
+        src_turn = _turn(source.motion.rotations[:FRAMES, src_joint])
+        j, ref = sk.index(joint), _mapped_as(source.mapping, source.motion.skeleton.parents[src_joint], target)
+        seen = rot.mul(rot.inv(grot[:, sk.parents[j] if ref is None else sk.index(ref)]), grot[:, j])
+        gaps[extra] = (src_turn - _turn(seen)).abs()
         turned = max(turned, float(src_turn.max()))
     assert turned > 5.0
     return gaps
@@ -181,6 +198,13 @@ def test_result_fingers_follow_the_source(rig: Rig, tmp_path_factory: pytest.Tem
     """The result GLB, default chain (finger clearance on): each finger follows the source on every frame."""
     gaps = _finger_gaps(rig, run_rig_job(rig, tmp_path_factory).result_glb)
     assert {e: round(float(g.max()), 2) for e, g in gaps.items() if g.max() > FINGER_FOLLOW_DEG} == {}
+
+
+def _mapped_as(source_map: JointMapping, joint: int, target: LoadedCharacter) -> str | None:
+    """The name of the target joint mapped as the source's ``joint`` (a hand, a finger), None if none is."""
+    names = {j: n for n, j in [*source_map.joints.items(), *source_map.extras.items()]}
+    mapped = {**target.mapping.joints, **target.mapping.extras}.get(names.get(joint, ""))
+    return None if mapped is None else target.character.skeleton.names[mapped]
 
 
 def _turn(local: torch.Tensor) -> torch.Tensor:
