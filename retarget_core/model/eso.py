@@ -52,7 +52,8 @@ from retarget_core.rotations import normalize as r_normalize
 
 @dataclass(frozen=True)
 class ESOParams:
-    """Settings (lengths at a 1.80 m character). Weights: the paper relaxes its training weights by
+    """Settings (lengths at a 1.80 m character, but ``gate_m`` and ``met_m``: on the body's own scale, as tuned;
+    read at 1.80 m they cost two held-out misses, docs/collisions.md). Weights: the paper relaxes its training weights by
     rho 1000 -> 10, beta 100 -> 1, lambda 1000 -> 100; our training weights (rotation 100, interpenetration
     100, contact 1000) relaxed by the same factors give rotation 1, interpenetration 1, contact 100."""
 
@@ -60,8 +61,8 @@ class ESOParams:
     steps: int = 10
     learning_rate: float = 0.01
     adam_betas: tuple[float, float] = (0.5, 0.999)
-    gate_m: float = 0.15  # paper: contacts optimised only when within 15 cm
-    met_m: float = 0.01  # a contact closer than 1 cm is met
+    gate_m: float = 0.15  # paper: contacts optimised only when within 15 cm (body's own metres)
+    met_m: float = 0.01  # a contact closer than 1 cm is met (body's own metres)
     penetration_m: float = 0.01  # a frame penetrates when a sentinel vertex is 1 cm deep (the acceptance's frames > 1 cm)
     step_share: float = 0.3  # paper: target = 0.7 x current + 0.3 x contact vertex
     fade_frames: int = 4  # flagged frames' neighbours optimised with a linear fade over this many frames
