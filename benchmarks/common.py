@@ -166,6 +166,7 @@ def profile_to(out: Path, fn: Callable[[], object]) -> Path:
     profiler = Profiler(interval=0.005)
     with profiler:
         fn()
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(profiler.output_text(unicode=False, color=False, show_all=False, time="seconds"))
     print(f"wrote {out}", flush=True)
     return out

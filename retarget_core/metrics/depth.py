@@ -52,6 +52,27 @@ class VertexDepths:
         keep = torch.isin(self.frame, frames)
         return VertexDepths(self.num_frames, self.num_vertices, self.frame[keep], self.vertex[keep], self.depth[keep])
 
+    def select_rows(self, keep: Tensor) -> VertexDepths:
+        """The rows where ``keep (F,)`` is true, renumbered ``0..`` in order."""
+        new_of = torch.cumsum(keep.long(), 0) - 1
+        hit = keep.index_select(0, self.frame)
+        return VertexDepths(int(keep.sum()), self.num_vertices, new_of.index_select(0, self.frame[hit]),
+                            self.vertex[hit], self.depth[hit])  # fmt: skip
+
+    def value_at(self, frame: Tensor, vertex: Tensor) -> Tensor:
+        """``(N,)`` the depths at ``(frame, vertex) (N,)`` each (0 where no entry); entries ordered by frame then
+        vertex, as :meth:`concat` and :meth:`from_dense` leave them."""
+        keys = self.frame * self.num_vertices + self.vertex
+        want = frame * self.num_vertices + vertex
+        if len(keys) == 0:
+            return self.depth.new_zeros(len(want))
+        at = torch.searchsorted(keys, want).clamp_max(len(keys) - 1)
+        return torch.where(keys[at] == want, self.depth[at], self.depth.new_zeros(()))
+
+    def vertices_of(self, frames: Tensor) -> Tensor:
+        """Sorted vertices with an entry on any of ``frames``."""
+        return torch.unique(self.vertex[torch.isin(self.frame, frames)])
+
     def dense(self) -> Tensor:
         """The ``(F, V)`` array (for scripts and tests; the metrics never build it)."""
         out = torch.zeros(self.num_frames, self.num_vertices, dtype=self.depth.dtype)

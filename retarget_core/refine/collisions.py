@@ -224,7 +224,7 @@ def finishing_pass(s: Solve) -> None:
         reached.frame = s.active[reached.frame]
         add_mesh_pairs(s, reached)
     s.hand_points = s.points
-    extra = torch.nonzero((s.before.depth[s.active] > 0).any(0)).flatten()
+    extra = s.before.depth.vertices_of(s.active)  # before's rows are the clip's frames
     if not p.finish_iterations or len(extra) == 0:
         return
     t = time.process_time()
@@ -280,7 +280,7 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor) -> Tensor | None:
     ok_contact = after.contact.clone()
     ok_contact[torch.isin(s.contacts.frame, frames[worse])] = float("nan")
     s.guard.merge(FrameCheck(frames[~worse], after.volume[~worse], after.max_depth[~worse], after.count[~worse],
-                             after.depth[~worse], ok_contact))  # fmt: skip
+                             after.depth.select_rows(~worse), ok_contact))  # fmt: skip
     free = (s.basis[frames[worse]] > 0).any(0)  # (N,) knots under the worse frames
     prob = s.prob.subset(torch.nonzero((s.basis[s.prob.frames][:, free] > 0).any(1)).flatten())
     s.points = torch.unique(torch.cat([s.points, extra]))
@@ -306,11 +306,12 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor) -> Tensor | None:
 def deepened_points(before: FrameCheck, after: FrameCheck, worse: Tensor, points: Tensor, tol: float) -> Tensor:
     """Vertices (not yet in ``points``) deeper than ``tol`` and deeper than in ``before`` on the ``worse (n,)``
     frames of ``after``."""
-    frames = after.frames[worse]
-    deeper = (after.depth[worse] > tol) & (after.depth[worse] > before.depth[frames] + tol)
-    grown = deeper.any(0)
-    grown[points] = False
-    return torch.nonzero(grown).flatten()
+    d = after.depth
+    hot = worse.index_select(0, d.frame) & (d.depth > tol)
+    frame, vertex, depth = after.frames.index_select(0, d.frame[hot]), d.vertex[hot], d.depth[hot]
+    deeper = depth > before.depth.value_at(frame, vertex) + tol  # before's rows are the clip's frames
+    grown = torch.unique(vertex[deeper])
+    return grown[~torch.isin(grown, points)]
 
 
 def mesh_inside(mesh: MeshPairs | None, frames: Tensor, tol: float) -> MeshPairs | None:

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import torch
 
+from retarget_core.metrics.depth import VertexDepths
 from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.collision_mesh import MeshPairs
 from retarget_core.refine.collisions import deepened_points, mesh_inside
 
 
 def _check(frames: list[int], depth: torch.Tensor) -> FrameCheck:
-    return FrameCheck(torch.tensor(frames), depth.sum(1), depth.amax(1), (depth > 0).sum(1).float(), depth, torch.zeros(0))
+    return FrameCheck(torch.tensor(frames), depth.sum(1), depth.amax(1), (depth > 0).sum(1).float(),
+                      VertexDepths.from_dense(depth), torch.zeros(0))  # fmt: skip
 
 
 def test_deepened_points_are_the_new_deeper_vertices_of_the_worse_frames() -> None:
@@ -22,6 +24,21 @@ def test_deepened_points_are_the_new_deeper_vertices_of_the_worse_frames() -> No
     got = deepened_points(before, after, worse, points=torch.tensor([1]), tol=0.003)
     assert got.tolist() == [0]
     assert deepened_points(before, after, worse, points=torch.tensor([0]), tol=0.003).tolist() == []
+    # a vertex as deep as on the input is not new: before frame 1 has vertex 0 at 0.009 m
+    before = _check([0, 1, 2], torch.tensor([[0.0, 0.02, 0.0, 0.0], [0.009, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]))
+    assert deepened_points(before, after, worse, points=torch.tensor([1]), tol=0.003).tolist() == []
+
+
+def test_sparse_depths_read_as_the_dense_array() -> None:
+    dense = torch.tensor([[0.0, 0.02, 0.0], [0.0, 0.0, 0.0], [0.01, 0.0, 0.03]])
+    d = VertexDepths.from_dense(dense)
+    assert d.frame.tolist() == [0, 2, 2] and d.vertex.tolist() == [1, 0, 2]
+    frame, vertex = torch.tensor([0, 0, 1, 2, 2, 2]), torch.tensor([0, 1, 1, 0, 1, 2])
+    assert torch.equal(d.value_at(frame, vertex), dense[frame, vertex])
+    keep = torch.tensor([False, True, True])
+    assert torch.equal(d.select_rows(keep).dense(), dense[keep])
+    assert d.vertices_of(torch.tensor([2])).tolist() == [0, 2] and d.vertices_of(torch.tensor([1])).tolist() == []
+    assert VertexDepths.empty(2, 3).value_at(torch.tensor([1]), torch.tensor([2])).tolist() == [0.0]
 
 
 def test_mesh_inside_keeps_the_deep_pairs_of_the_given_frames() -> None:

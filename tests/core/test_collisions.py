@@ -191,7 +191,7 @@ def test_hand_sunk_into_the_belly_ends_on_its_surface(bulky: Character) -> None:
 
     def measure(m: Motion):  # type: ignore[no-untyped-def]
         c = check_frames(bulky, ctx.sdf, m.rotations, m.translations, idx, contacts, 0.003 / s)
-        return float(c.depth[:, hand].max()) * s, float(c.contact.max()) * s
+        return float(c.depth.dense()[:, hand].max()) * s, float(c.contact.max()) * s
 
     depth_before, _ = measure(before)
     assert depth_before > 0.02  # the built case: the hand is deep in the belly
@@ -384,11 +384,11 @@ def test_accessory_vertices_are_never_tested_nor_sentinels(bulky: Character) -> 
     frames = torch.arange(2)
     none = contact_instances(ctx.sdf, no_contacts(2))
     whole = check_frames(bulky, ctx.sdf, motion.rotations, motion.translations, frames, none, 0.003)
-    assert float(whole.depth[:, hand].max()) > 0.01
+    assert float(whole.depth.dense()[:, hand].max()) > 0.01
     body = torch.ones(bulky.num_vertices, dtype=torch.bool)
     body[hand] = False
     sdf = replace(ctx.sdf, parts=replace(ctx.parts, body=body))
     gloved = check_frames(bulky, sdf, motion.rotations, motion.translations, frames, none, 0.003)
-    assert float(gloved.depth[:, hand].abs().max()) == 0.0
+    assert float(gloved.depth.dense()[:, hand].abs().max()) == 0.0
     assert not bool(torch.isin(sentinel_vertices(sdf, bulky.vertices.float(), 0.03), hand).any())
     assert bool(torch.isin(sentinel_vertices(ctx.sdf, bulky.vertices.float(), 0.03), hand).any())

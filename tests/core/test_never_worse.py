@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from retarget_core.metrics.depth import VertexDepths
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 
@@ -27,7 +28,8 @@ class Limits:
 
 def _check(frames: Tensor, depth: Tensor) -> FrameCheck:
     n = len(frames)
-    return FrameCheck(frames, depth * 1e-4, depth, (depth > 0).float(), torch.zeros(n, 1), torch.zeros(0))
+    return FrameCheck(frames, depth * 1e-4, depth, (depth > 0).float(), VertexDepths.from_dense(torch.zeros(n, 1)),
+                      torch.zeros(0))  # fmt: skip
 
 
 def _toy(harm: Tensor):
