@@ -120,6 +120,13 @@ class Character:
         mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
         return kinematics.linear_blend_skinning(self.vertices, self.dense_weights(), mats)
 
+    def pose_rows(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
+        """The rows ``index (N,)`` of :meth:`pose_vertices`, ``(..., N, 3)``, computed the same way (bit-identical),
+        without posing the other vertices."""
+        rest_rot, rest_pos = self.skeleton.rest_global()
+        mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
+        return kinematics.linear_blend_skinning(self.vertices[index], self.dense_weights()[index], mats)
+
     def pose_vertex_subset(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
                            chunk: int = 64) -> Tensor:  # fmt: skip
         """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` only (LBS on the joints that skin them),

@@ -78,6 +78,12 @@ class MeshSetup:
     testers: dict[str, np.ndarray]
     dragged: dict[str, np.ndarray]
 
+    def read_vertices(self) -> np.ndarray:
+        """Sorted body vertices :func:`find_mesh_pairs` reads: testers, dragged skin and the target parts'."""
+        targets = [part.vertices for t in dict.fromkeys(t for ts in MESH_TARGETS.values() for t in ts)
+                   if (part := self.body.part(t)) is not None]  # fmt: skip
+        return np.unique(np.concatenate([*self.testers.values(), *self.dragged.values(), *targets]).astype(np.int64))
+
 
 def mesh_setup(character: Character, mapping: JointMapping) -> MeshSetup:
     """The judge's body and the vertices :func:`find_mesh_pairs` tests (a second or two the first time a body
@@ -182,11 +188,13 @@ def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tens
     from retarget_core import kinematics
 
     out: list[MeshPairs] = []
+    read = setup.read_vertices()  # only these are posed: the rest of the array stays zero, unread
     with torch.no_grad():
         for s in range(0, len(frames), chunk):
             fr = frames[s : s + chunk]
             grot, gpos = kinematics.forward_kinematics(character.skeleton.parents, rotations[fr], translations[fr])
-            posed = character.pose_vertices(grot, gpos).double().numpy()
+            posed = np.zeros((len(fr), character.num_vertices, 3))
+            posed[:, read] = character.pose_rows(torch.from_numpy(read), grot, gpos).double().numpy()
             mp = find_mesh_pairs(setup, posed, near, 0.05 * character.height / 1.80)
             mp.frame += s
             out.append(mp)

@@ -43,3 +43,34 @@ def test_mesh_pairs_union_keeps_one_pair_per_frame_and_vertex_preferring_the_new
     got = {(int(f), int(v)): round(float(d), 6) for f, v, d in zip(u.frame, u.vertex, u.depth, strict=True)}
     assert got == {(0, 5): 0.02, (0, 6): 0.01, (1, 5): 0.01, (2, 7): 0.02}
     assert torch.allclose(u.max_depth(3), torch.tensor([0.02, 0.01, 0.02]))
+
+
+def test_the_mesh_test_poses_only_what_it_reads_and_reads_the_same() -> None:
+    """The posed-torso test skins only the vertices it reads (testers, dragged skin, the torso part): their rows
+    are bit-identical to the whole body's, and the pairs found on a pose equal those on the fully posed body."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from retarget_core import kinematics
+    from retarget_core.loading import load_character
+    from retarget_core.refine.collision_mesh import find_mesh_pairs, mesh_pairs_of_motion, mesh_setup
+
+    loaded = load_character(Path(__file__).parents[2] / "retarget_core/data/samples/characters/mh_male_bulky.glb")
+    ch = loaded.character
+    setup = mesh_setup(ch, loaded.mapping)
+    read = setup.read_vertices()
+    assert 0 < len(read) < ch.num_vertices and np.all(np.diff(read) > 0)
+    rot = ch.skeleton.rest_rotations.float().repeat(3, 1, 1)
+    arms = [loaded.mapping.joints[n] for n in ("LeftArm", "RightArm")]
+    rot[:, arms] = torch.tensor([0.0, 0.0, 0.6, 0.8])  # the arms turned into the torso's sides
+    trans = ch.skeleton.rest_translations.float().repeat(3, 1, 1)
+    grot, gpos = kinematics.forward_kinematics(ch.skeleton.parents, rot, trans)
+    full = ch.pose_vertices(grot, gpos)
+    assert torch.equal(ch.pose_rows(torch.from_numpy(read), grot, gpos), full[:, torch.from_numpy(read)])
+    near = 0.01
+    want = find_mesh_pairs(setup, full.double().numpy(), near, 0.05 * ch.height / 1.80)
+    got = mesh_pairs_of_motion(ch, setup, rot, trans, torch.arange(3), near)
+    assert want.count > 0
+    for k in ("frame", "vertex", "tri", "sign", "depth"):
+        assert torch.equal(getattr(got, k), getattr(want, k)), k
