@@ -78,7 +78,6 @@ CONF_MITTEN = 0.6  # a mitten's segments (joints below the hand named like the h
 CONF_BESIDE = 0.8  # a thumb named for its side that hangs from the forearm beside the hand
 THUMB_MIN_SPREAD_DEG = 25.0  # the thumb's first bone leaves the hand at least this far from the mean finger
 SHARE_SUFFIX = ".share"
-END_SITE_TOKENS = frozenset({"end", "site", "nub", "tip"})  # a leaf marking a bone's end, not something carried
 LIMB_END: dict[str, str] = {"Arm": "ForeArm", "ForeArm": "Hand", "UpLeg": "Leg", "Leg": "Foot"}
 LIMB_PARENT: dict[str, tuple[str, ...]] = {
     "Arm": ("Shoulder",), "ForeArm": ("Arm",), "UpLeg": (), "Leg": ("UpLeg",),
@@ -94,6 +93,7 @@ class _Vocab:
     toes: dict[str, str]
     toe_words: frozenset[str]
     twist: frozenset[str]
+    end_site: frozenset[str]  # a leaf marking a bone's end, not something carried
     vrm_segments: dict[str, int]
 
 
@@ -109,6 +109,7 @@ def _vocab() -> _Vocab:
         toes=dict(ex["toes"]),
         toe_words=frozenset(ex["toe_words"]),
         twist=frozenset(ex["twist_tokens"]),
+        end_site=frozenset(ex["end_site_tokens"]),
         vrm_segments=dict(ex["vrm_segments"]),
     )
 
@@ -282,12 +283,12 @@ class _ExtraMapper:
             self.thumb_beside_hand(side, hand)
 
     def put_segments(self, prefix: str, joints: list[int], conf: float) -> list[str]:
-        """Number ``joints`` (sorted by depth) 1..3 by tree distance from the first, a skipped joint leaving a gap;
-        returns the names put."""
+        """Number ``joints`` (sorted by depth) 1..3 (:data:`TOE_SEGMENTS`, the fingers' too) by tree distance from
+        the first, a skipped joint leaving a gap; returns the names put."""
         names = []
         for j in joints:
             k = self.depth[j] - self.depth[joints[0]] + 1
-            if k <= 3:
+            if k in TOE_SEGMENTS:
                 self.put(f"{prefix}{k}", j, conf, "name")
                 names.append(f"{prefix}{k}")
         return names
@@ -313,7 +314,7 @@ class _ExtraMapper:
                   f"{', '.join(names)}, it curls as the source's middle finger")  # fmt: skip
         for name, j in zip(names, joints, strict=False):
             for c in self.children[j]:
-                if c not in joints and not END_SITE_TOKENS & set(_tokens(self.sk.names[c])):
+                if c not in joints and not _vocab().end_site & set(_tokens(self.sk.names[c])):
                     prop, seg = self.sk.names[c], self.sk.names[j]
                     self.warn(f"{prop!r} (a held prop?) hangs from {seg!r}, mapped as {name}: it turns with the "
                               f"mitten's curl; override {name} to null to hold it still")  # fmt: skip
@@ -326,10 +327,10 @@ class _ExtraMapper:
         fore = self.map.joints.get(side + "ForeArm")
         if parent < 0 or fore is None or (parent != fore and not self.is_ancestor(fore, parent)):
             return
-        thumbs = []
+        thumbs, taken = [], self.found_joints()
         for j in self.below(parent):  # stops at canonical joints: never inside the hand, nor another limb
             dn = finger_name(self.sk.names[j])
-            if dn.digit == "Thumb" and not dn.ignored and dn.side in (None, side) and j not in self.found_joints():
+            if dn.digit == "Thumb" and not dn.ignored and dn.side in (None, side) and j not in taken:
                 thumbs.append(j)
         if not thumbs:
             return
@@ -377,10 +378,7 @@ class _ExtraMapper:
 
     def map_toes(self, side: str, foot: int) -> None:
         for toe, joints in self.digits_by_name(side, foot, toe_name).items():
-            for j, _ in joints:
-                k = self.depth[j] - self.depth[joints[0][0]] + 1
-                if k in TOE_SEGMENTS:
-                    self.put(f"{side}Foot{toe}{k}", j, CONF_NAME, "name")
+            self.put_segments(f"{side}Foot{toe}", [j for j, _ in joints], CONF_NAME)
 
     # ---------------------------------------------------------------- twist bones
 
