@@ -21,7 +21,15 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
-from benchmarks.common import BULKY_SAMPLE, add_clip_options, add_output, parser, run_job_once, write_json  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    BULKY_SAMPLE,
+    add_clip_options,
+    add_output,
+    parser,
+    results_dir,
+    run_job_once,
+    write_json,
+)
 
 PHASES = ("choose tested vertices", "pose torso", "distance tree", "distance queries", "winding tree", "winding numbers")
 
@@ -99,7 +107,7 @@ def main() -> None:
     ap = parser(__doc__)
     add_clip_options(ap)
     ap.add_argument("--target", default=str(BULKY_SAMPLE), help="the target body (GLB, or builtin:<preset>)")
-    add_output(ap, Path("mesh_test_breakdown.json"))
+    add_output(ap, results_dir("diag") / "mesh_test_breakdown.json")
     a = ap.parse_args()
     setup, calls, in_job = record_calls(a.motion, a.target, a.frames, a.fps)
     if setup is None:
