@@ -1,7 +1,7 @@
 """Where the collision stage's posed-torso mesh test (`collision_mesh.find_mesh_pairs`) spends its time: one
-whole job (default chain) with the test's inputs recorded, then the recorded frames timed phase by phase
-(choosing the tested vertices, posing the torso, building libigl's distance tree, the distance queries, building
-the winding-number tree, the winding numbers).
+whole job (default chain) with the test's inputs recorded, then the recorded calls timed phase by phase
+(choosing the tested vertices, posing the torso, refitting its tree, the closest triangles, the winding numbers),
+and, for comparison, building libigl's distance and winding-number trees on every frame (the test's former way).
 
     PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/mesh_test_breakdown.py [--motion CLIP]
         [--target BODY] [--frames 300] [-o out.json]
@@ -31,7 +31,8 @@ from benchmarks.common import (  # noqa: E402
     write_json,
 )
 
-PHASES = ("choose tested vertices", "pose torso", "distance tree", "distance queries", "winding tree", "winding numbers")
+PHASES = ("choose tested vertices", "pose torso", "refit tree", "closest triangles", "winding numbers",
+          "for comparison: libigl's two trees per frame")  # fmt: skip
 
 
 def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[Any, list[tuple[np.ndarray, float]], float]:
@@ -60,14 +61,17 @@ def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[An
 
 
 def time_phases(setup: Any, calls: list[tuple[np.ndarray, float]]) -> dict[str, Any]:
-    """Seconds per phase over every recorded frame, and how many frames, queries and close queries there were."""
+    """Seconds per phase over every recorded call, how many frames, queries and close queries there were, and
+    for comparison what libigl's two trees per frame (the test's former way) take to build on the same frames."""
     import igl
+    import torch
 
-    from retarget_core.refine.collision_mesh import _frame_queries
+    from retarget_core.geometry.triangle_bvh import closest_triangles, refit, winding_numbers
+    from retarget_core.refine.collision_mesh import _queries
 
-    part = setup.body.part("torso")
+    part, tree = setup.body.part("torso"), setup.trees["torso"]
     sec = dict.fromkeys(PHASES, 0.0)
-    counts = {"frames tested": 0, "frames with queries": 0, "queries": 0, "queries near the torso": 0}
+    counts = {"frames tested": 0, "queries": 0, "queries near the torso": 0}
 
     @contextmanager
     def tick(phase: str) -> Iterator[None]:
@@ -76,30 +80,25 @@ def time_phases(setup: Any, calls: list[tuple[np.ndarray, float]]) -> dict[str, 
         sec[phase] += time.perf_counter() - t
 
     for posed, reach in calls:
-        for p in posed:
-            counts["frames tested"] += 1
-            with tick(PHASES[0]):
-                queries = _frame_queries(setup, p, reach)
-            if not queries:
-                continue
-            counts["frames with queries"] += 1
-            with tick(PHASES[1]):
-                local = part.posed(p)
-            with tick(PHASES[2]):
-                tree = igl.AABB()
-                tree.init(local, part.faces)
-            with tick(PHASES[4]):
-                winding = igl.FastWindingNumberBVH()
-                winding.init(local, part.faces)
-            for q_idx in queries.values():
-                q = np.ascontiguousarray(p[q_idx])
-                with tick(PHASES[3]):
-                    d2, _, _ = tree.squared_distance(local, part.faces, q)
-                close = np.ascontiguousarray(q[np.sqrt(d2) < reach])
-                with tick(PHASES[5]):
-                    winding.winding_number(close)
-                counts["queries"] += len(q)
-                counts["queries near the torso"] += len(close)
+        counts["frames tested"] += len(posed)
+        with tick(PHASES[0]):
+            frame, vertex = _queries(setup, "torso", posed, reach)
+        with tick(PHASES[1]):
+            local = torch.from_numpy(part.posed(posed))
+        with tick(PHASES[2]):
+            boxes = refit(tree, local)
+        q = torch.from_numpy(posed[frame.numpy(), vertex.numpy()])
+        with tick(PHASES[3]):
+            _, face = closest_triangles(tree, boxes, frame, q, reach)
+        close = face >= 0
+        with tick(PHASES[4]):
+            winding_numbers(tree, boxes, frame[close], q[close])
+        with tick(PHASES[5]):
+            for f in torch.unique(frame).tolist():
+                igl.AABB().init(local[f].numpy(), part.faces)
+                igl.FastWindingNumberBVH().init(local[f].numpy(), part.faces)
+        counts["queries"] += len(q)
+        counts["queries near the torso"] += int(close.sum())
     return {"torso faces": int(len(part.faces)), **counts, "seconds": {k: round(v, 3) for k, v in sec.items()}}
 
 

@@ -75,12 +75,12 @@ class ClosedPart:
     is_cap: np.ndarray
 
     def posed(self, posed_vertices: np.ndarray) -> np.ndarray:
-        """Local vertex positions ``(N + L, 3)`` from the body's posed vertices ``(V, 3)``."""
-        own = posed_vertices[self.vertices]
+        """Local vertex positions ``(..., N + L, 3)`` from the body's posed vertices ``(..., V, 3)``."""
+        own = posed_vertices[..., self.vertices, :]
         if not self.cap_loops:
             return own
-        centres = np.stack([posed_vertices[loop].mean(axis=0) for loop in self.cap_loops])
-        return np.concatenate([own, centres])
+        centres = np.stack([posed_vertices[..., loop, :].mean(axis=-2) for loop in self.cap_loops], axis=-2)
+        return np.concatenate([own, centres], axis=-2)
 
 
 @dataclass

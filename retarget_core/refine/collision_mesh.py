@@ -6,8 +6,8 @@ partly to the arm (weights of Spine1, Spine2, Shoulder and Arm mixed), so when a
 bulky body the posed torso surface bulges out with it and holds upper-arm vertices 1-3 cm deep, 7-14 cm from
 any part seam, while the rigid Spine grids see them outside (on bulky, heavy and tall bodies, most of the frames
 the judge counts deeper than 1 cm after the stage without this test). Here the posed closed parts of
-:mod:`retarget_core.metrics.acceptance_body` are tested directly (libigl: winding number and closest
-triangle), and each (frame, arm vertex, triangle) found is given the plane distance to its posed triangle,
+:mod:`retarget_core.metrics.acceptance_body` are tested directly (closest triangle and winding number through
+a tree refit per frame, :mod:`retarget_core.geometry.triangle_bvh`), and each (frame, arm vertex, triangle) found is given the plane distance to its posed triangle,
 which the optimiser can differentiate.
 
 Lengths in metres on the body's own scale unless the name says otherwise.
@@ -23,6 +23,7 @@ from torch import Tensor
 
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
+from retarget_core.geometry.triangle_bvh import TriangleBVH, build_bvh, closest_triangles, refit, winding_numbers
 from retarget_core.metrics.acceptance_body import PARTS, AcceptanceBody, acceptance_body
 
 MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm": ("torso",)}
@@ -71,12 +72,13 @@ class MeshPairs:
 @dataclass
 class MeshSetup:
     """Per body: the judge's parts (``body``) and, per tester part of :data:`MESH_TARGETS`, the tested vertices
-    ``testers[part] (T,)`` (counted by the judge and within reach of the dragged skin) and the dragged torso
-    vertices ``dragged[part] (D,)`` (skinned partly to that arm)."""
+    ``testers[part] (T,)`` (counted by the judge and within reach of the dragged skin), the dragged torso
+    vertices ``dragged[part] (D,)`` (skinned partly to that arm) and each target part's tree."""
 
     body: AcceptanceBody
     testers: dict[str, np.ndarray]
     dragged: dict[str, np.ndarray]
+    trees: dict[str, TriangleBVH]  # target part -> its closed mesh's tree (rest pose, refit per frame)
 
     def read_vertices(self) -> np.ndarray:
         """Sorted body vertices :func:`find_mesh_pairs` reads: testers, dragged skin and the target parts'."""
@@ -107,78 +109,66 @@ def mesh_setup(character: Character, mapping: JointMapping) -> MeshSetup:
             gap = np.min(np.linalg.norm(rest[cand, None] - rest[None, d[:: max(1, len(d) // 64)]], axis=-1), axis=1)
             cand = cand[gap < reach]
         testers_[p], dragged[p] = cand, d
-    return MeshSetup(body, testers_, dragged)
+    trees = {t: build_bvh(part.posed(rest), part.faces) for t in dict.fromkeys(t for ts in MESH_TARGETS.values() for t in ts)
+             if (part := body.part(t)) is not None}  # fmt: skip
+    return MeshSetup(body, testers_, dragged, trees)
 
 
 def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: float) -> MeshPairs:
     """Pairs of posed frames ``posed (n, V, 3)``: tester vertices within ``reach`` of the dragged skin's posed
     box that are inside a target part, or outside within ``near`` of it; closest points on a cap fan are left
-    out (the judge does)."""
-    import igl
-
-    body = setup.body
-    rows_f, rows_v, rows_t, rows_s, rows_d = [], [], [], [], []
-    for f in range(posed.shape[0]):
-        p = posed[f]
-        queries = _frame_queries(setup, p, reach)  # tester part -> its vertices near the dragged skin
-        for t_name in dict.fromkeys(t for tester in queries for t in MESH_TARGETS[tester]):  # in a fixed order
-            part = body.part(t_name)
-            if part is None:
-                continue
-            local = part.posed(p)
-            tree = igl.AABB()  # built once per frame and part, for both arms
-            tree.init(local, part.faces)
-            winding: igl.FastWindingNumberBVH | None = None  # built when first needed
-            for tester, q_idx in queries.items():
-                if t_name not in MESH_TARGETS[tester]:
-                    continue
-                q = np.ascontiguousarray(p[q_idx])
-                d2, face, _ = tree.squared_distance(local, part.faces, q)
-                d = np.sqrt(d2)
-                inside = np.zeros(len(q), dtype=bool)
-                close = np.nonzero(d < reach)[0]  # deeper: the rigid SDFs see it
-                if len(close):
-                    if winding is None:
-                        winding = igl.FastWindingNumberBVH()
-                        winding.init(local, part.faces)
-                    inside[close] = np.abs(winding.winding_number(np.ascontiguousarray(q[close]))) > 0.5
-                keep = (inside | (d < near)) & ~part.is_cap[face]
-                if not keep.any():
-                    continue
-                tri_local = part.faces[face[keep]]
-                a, b, c = local[tri_local[:, 0]], local[tri_local[:, 1]], local[tri_local[:, 2]]
-                n = np.cross(b - a, c - a)
-                n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-15)
-                s0 = ((q[keep] - a) * n).sum(1)  # fmt: skip
-                depth = np.where(inside[keep], d[keep], -d[keep])
-                rows_f.append(np.full(int(keep.sum()), f))
-                rows_v.append(q_idx[keep])
-                rows_t.append(part.vertices[tri_local])
-                rows_s.append(np.where(-depth * s0 >= 0.0, 1.0, -1.0))
-                rows_d.append(depth)
-    if not rows_f:
-        e = torch.zeros(0, dtype=torch.long)
-        return MeshPairs(e, e, torch.zeros(0, 3, dtype=torch.long), torch.zeros(0), torch.zeros(0))
-    return MeshPairs(
-        torch.from_numpy(np.concatenate(rows_f)).long(), torch.from_numpy(np.concatenate(rows_v)).long(),
-        torch.from_numpy(np.concatenate(rows_t)).long(), torch.from_numpy(np.concatenate(rows_s)).float(),
-        torch.from_numpy(np.concatenate(rows_d)).float(),
-    )  # fmt: skip
+    out (the judge does). All frames at once through each part's refit tree."""
+    out = [_part_pairs(setup, t_name, posed, near, reach) for t_name in setup.trees]
+    if not out:
+        return _no_pairs()
+    return MeshPairs(*(torch.cat([getattr(m, k) for m in out]) for k in ("frame", "vertex", "tri", "sign", "depth")))
 
 
-def _frame_queries(setup: MeshSetup, p: np.ndarray, reach: float) -> dict[str, np.ndarray]:
-    """Tester part -> its tester vertices inside the posed dragged skin's box ``p (V, 3)`` grown by ``reach``
-    (parts with none left out)."""
-    out: dict[str, np.ndarray] = {}
-    for tester in MESH_TARGETS:
+def _no_pairs() -> MeshPairs:
+    e = torch.zeros(0, dtype=torch.long)
+    return MeshPairs(e, e, torch.zeros(0, 3, dtype=torch.long), torch.zeros(0), torch.zeros(0))
+
+
+def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, reach: float) -> MeshPairs:
+    """:func:`find_mesh_pairs` against one target part ``t_name``."""
+    part, tree = setup.body.part(t_name), setup.trees[t_name]
+    assert part is not None
+    frame, vertex = _queries(setup, t_name, posed, reach)
+    if len(frame) == 0:
+        return _no_pairs()
+    local = torch.from_numpy(part.posed(posed))  # (n, N + L, 3)
+    boxes = refit(tree, local)
+    q = torch.from_numpy(posed[frame.numpy(), vertex.numpy()])
+    d, face = closest_triangles(tree, boxes, frame, q, reach)
+    close = torch.nonzero(face >= 0).flatten()  # deeper than reach: the rigid SDFs see it
+    inside = torch.zeros(len(q), dtype=torch.bool)
+    inside[close] = winding_numbers(tree, boxes, frame[close], q[close]).abs() > 0.5
+    keep = close[(inside[close] | (d[close] < near)) & ~torch.from_numpy(part.is_cap)[face[close]]]
+    tri_local = tree.faces[face[keep]]
+    a, b, c = (local[frame[keep], tri_local[:, k]] for k in range(3))
+    n = torch.cross(b - a, c - a, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-15)
+    s0 = ((q[keep] - a) * n).sum(1)
+    depth = torch.where(inside[keep], d[keep], -d[keep])
+    sign = torch.where(-depth * s0 >= 0.0, 1.0, -1.0)
+    return MeshPairs(frame[keep], vertex[keep], torch.from_numpy(part.vertices)[tri_local], sign.float(), depth.float())
+
+
+def _queries(setup: MeshSetup, t_name: str, posed: np.ndarray, reach: float) -> tuple[Tensor, Tensor]:
+    """``(Q,)`` frames and tester vertices tested against part ``t_name`` in ``posed (n, V, 3)``: each tester part's
+    vertices inside its posed dragged skin's box grown by ``reach``."""
+    frames, vertices = [torch.zeros(0, dtype=torch.long)], [torch.zeros(0, dtype=torch.long)]
+    for tester, targets in MESH_TARGETS.items():
         cand, drag = setup.testers[tester], setup.dragged[tester]
-        if len(cand) == 0 or len(drag) == 0:
+        if t_name not in targets or len(cand) == 0 or len(drag) == 0:
             continue
-        lo, hi = p[drag].min(0) - reach, p[drag].max(0) + reach
-        q_idx = cand[np.all((p[cand] >= lo) & (p[cand] <= hi), axis=1)]
-        if len(q_idx):
-            out[tester] = q_idx
-    return out
+        lo = posed[:, drag].min(axis=1, keepdims=True) - reach  # (n, 1, 3)
+        hi = posed[:, drag].max(axis=1, keepdims=True) + reach
+        at = posed[:, cand]
+        f, k = np.nonzero(np.all((at >= lo) & (at <= hi), axis=-1))
+        frames.append(torch.from_numpy(f).long())
+        vertices.append(torch.from_numpy(cand[k]).long())
+    return torch.cat(frames), torch.cat(vertices)
 
 
 def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tensor, translations: Tensor,
@@ -199,7 +189,7 @@ def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tens
             mp.frame += s
             out.append(mp)
     if not out:
-        return find_mesh_pairs(setup, np.zeros((0, character.num_vertices, 3)), near, 0.0)
+        return _no_pairs()
     return MeshPairs(*(torch.cat([getattr(m, k) for m in out]) for k in ("frame", "vertex", "tri", "sign", "depth")))
 
 

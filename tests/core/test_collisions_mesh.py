@@ -74,3 +74,44 @@ def test_the_mesh_test_poses_only_what_it_reads_and_reads_the_same() -> None:
     assert want.count > 0
     for k in ("frame", "vertex", "tri", "sign", "depth"):
         assert torch.equal(getattr(got, k), getattr(want, k)), k
+
+
+def test_the_mesh_test_finds_what_libigl_finds_on_a_posed_body() -> None:
+    """On the bulky sample with the arms turned into its sides, the pairs are libigl's (closest triangle and fast
+    winding number per frame): every pair's depth is libigl's distance, signed by its winding number, and every
+    tester vertex libigl sees inside (or within ``near``) through a triangle that is not a cap is a pair."""
+    from pathlib import Path
+
+    import igl
+    import numpy as np
+
+    from retarget_core import kinematics
+    from retarget_core.loading import load_character
+    from retarget_core.refine.collision_mesh import _queries, find_mesh_pairs, mesh_setup
+
+    loaded = load_character(Path(__file__).parents[2] / "retarget_core/data/samples/characters/mh_male_bulky.glb")
+    ch = loaded.character
+    setup = mesh_setup(ch, loaded.mapping)
+    rot = ch.skeleton.rest_rotations.float().repeat(4, 1, 1)
+    arms = [loaded.mapping.joints[n] for n in ("LeftArm", "RightArm")]
+    for k, angle in enumerate((1.1, 1.2, 1.29, 1.4)):  # the arms turned into the torso's sides, more and more
+        rot[k, arms] = torch.tensor([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]).float()
+    trans = ch.skeleton.rest_translations.float().repeat(4, 1, 1)
+    posed = ch.pose_vertices(*kinematics.forward_kinematics(ch.skeleton.parents, rot, trans)).double().numpy()
+    near, reach = 0.01, 0.05 * ch.height / 1.80
+    got = find_mesh_pairs(setup, posed, near, reach)
+    part = setup.body.part("torso")
+    assert part is not None and got.count > 0 and bool((got.depth > 0).any())
+    found = {(int(f), int(v)): float(d) for f, v, d in zip(got.frame, got.vertex, got.depth, strict=True)}
+    frame, vertex = _queries(setup, "torso", posed, reach)
+    for f in range(len(posed)):
+        local = part.posed(posed[f])
+        q_idx = vertex[frame == f].numpy()
+        d2, face, _ = igl.point_mesh_squared_distance(posed[f][q_idx], local, part.faces)
+        d = np.sqrt(d2)
+        inside = np.abs(igl.fast_winding_number(local, part.faces, posed[f][q_idx])) > 0.5
+        for v, dist, ins, cap in zip(q_idx, d, inside, part.is_cap[face], strict=True):
+            if (f, int(v)) in found:
+                assert abs(found[(f, int(v))] - (dist if ins else -dist)) < 1e-6
+            elif dist < reach:
+                assert cap or not (ins or dist < near), (f, v)

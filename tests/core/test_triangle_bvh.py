@@ -1,0 +1,74 @@
+"""The refit triangle tree against libigl on a deformed closed mesh over several frames (small: fast)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from retarget_core.geometry.triangle_bvh import (
+    build_bvh,
+    closest_triangles,
+    point_triangle_distance,
+    refit,
+    winding_numbers,
+)
+
+
+def _frames() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """A sphere (rest pose) and 5 bulged, moved frames of it."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=3)
+    rest, faces = np.asarray(m.vertices), np.asarray(m.faces)
+    frames = [rest * (1 + 0.3 * np.sin(3 * rest[:, [1, 2, 0]] + k)) + 0.05 * k for k in range(5)]
+    return rest, faces, frames
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_closest_triangles_and_winding_numbers_match_libigl_on_every_frame(leaf_size: int) -> None:
+    import igl
+
+    rest, faces, frames = _frames()
+    tree = build_bvh(rest, faces, leaf_size)
+    boxes = refit(tree, torch.from_numpy(np.stack(frames)))
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-1.5, 1.8, (2000, 3))
+    fr = rng.integers(0, len(frames), len(q))
+    reach = 0.2
+    d, face = closest_triangles(tree, boxes, torch.from_numpy(fr), torch.from_numpy(q), reach)
+    w = winding_numbers(tree, boxes, torch.from_numpy(fr), torch.from_numpy(q))
+    close_seen = inside_seen = 0
+    for k, verts in enumerate(frames):
+        sel = fr == k
+        d2, _, _ = igl.point_mesh_squared_distance(q[sel], verts, faces)
+        ref = np.sqrt(d2)
+        mine, mine_face = d.numpy()[sel], face.numpy()[sel]
+        close = ref < reach
+        assert np.allclose(mine[close], ref[close], atol=1e-12)
+        assert np.all(np.isinf(mine[~close])) and np.all(mine_face[~close] == -1)
+        v, f = torch.from_numpy(verts), torch.from_numpy(faces)
+        at_face = point_triangle_distance(torch.from_numpy(q[sel][close]), *(v[f[mine_face[close], c]] for c in range(3)))
+        assert np.allclose(at_face.numpy(), ref[close], atol=1e-12)  # a closest triangle (ties: the lowest index)
+        inside_ref = np.abs(igl.fast_winding_number(verts, faces, q[sel])) > 0.5
+        assert np.array_equal(np.abs(w.numpy()[sel]) > 0.5, inside_ref)
+        close_seen, inside_seen = close_seen + int(close.sum()), inside_seen + int(inside_ref.sum())
+    assert close_seen > 100 and inside_seen > 100  # both kinds of query were asked
+
+
+def test_a_point_on_a_shared_edge_gets_the_lower_triangle_and_far_points_none() -> None:
+    verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    tree = build_bvh(verts, faces, leaf_size=1)
+    boxes = refit(tree, torch.from_numpy(verts)[None])
+    q = torch.tensor([[0.5, 0.5, 0.1], [5.0, 5.0, 5.0]], dtype=torch.float64)  # above the diagonal; far away
+    d, face = closest_triangles(tree, boxes, torch.zeros(2, dtype=torch.long), q, 1.0)
+    assert math.isclose(float(d[0]), 0.1, abs_tol=1e-12) and int(face[0]) == 0
+    assert math.isinf(float(d[1])) and int(face[1]) == -1
+
+
+def test_an_empty_triangle_set_is_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="empty"):
+        build_bvh(np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64))
