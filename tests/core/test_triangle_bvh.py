@@ -72,3 +72,19 @@ def test_a_point_on_a_shared_edge_gets_the_lower_triangle_and_far_points_none() 
 def test_an_empty_triangle_set_is_refused_by_name() -> None:
     with pytest.raises(ValueError, match="empty"):
         build_bvh(np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64))
+
+
+def test_queries_walked_in_blocks_read_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    import retarget_core.geometry.triangle_bvh as tb
+
+    rest, faces, frames = _frames()
+    tree = build_bvh(rest, faces)
+    boxes = refit(tree, torch.from_numpy(np.stack(frames)))
+    rng = np.random.default_rng(1)
+    q = torch.from_numpy(rng.uniform(-1.5, 1.8, (500, 3)))
+    fr = torch.from_numpy(rng.integers(0, len(frames), len(q)))
+    whole = closest_triangles(tree, boxes, fr, q, 0.2), winding_numbers(tree, boxes, fr, q)
+    monkeypatch.setattr(tb, "QUERY_BLOCK", 64)
+    blocked = closest_triangles(tree, boxes, fr, q, 0.2), winding_numbers(tree, boxes, fr, q)
+    assert torch.equal(whole[0][0], blocked[0][0]) and torch.equal(whole[0][1], blocked[0][1])
+    assert torch.equal(whole[1], blocked[1])
