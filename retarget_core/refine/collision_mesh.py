@@ -7,8 +7,8 @@ bulky body the posed torso surface bulges out with it and holds upper-arm vertic
 any part seam, while the rigid Spine grids see them outside (on bulky, heavy and tall bodies, most of the frames
 the judge counts deeper than 1 cm after the stage without this test). Here the posed closed parts of
 :mod:`retarget_core.metrics.acceptance_body` are tested directly (closest triangle and winding number through
-a tree refit per frame, :mod:`retarget_core.geometry.triangle_bvh`), and each (frame, arm vertex, triangle) found is given the plane distance to its posed triangle,
-which the optimiser can differentiate.
+a tree refit per frame, :mod:`retarget_core.geometry.triangle_bvh`), and each (frame, arm vertex, triangle)
+found is given the plane distance to its posed triangle, which the optimiser can differentiate.
 
 Lengths in metres on the body's own scale unless the name says otherwise.
 """
