@@ -43,6 +43,7 @@ from retarget_core.body_parts import CLUSTERS, HAND_SEGMENTS, BodyParts
 from retarget_core.character import Character
 from retarget_core.energy.mesh_distance import cap_boundary_loops
 from retarget_core.energy.sdf import vertex_clusters
+from retarget_core.geometry.closest_point import closest_points
 
 REFERENCE_HEIGHT_M = 1.80
 OWN_ARM: dict[str, str] = {"LeftHand": "left_arm", "RightHand": "right_arm"}
@@ -245,47 +246,6 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
 def _dense(members: Tensor) -> Tensor:
     """A -1 padded table ``(C, K)`` padded with each row's first member instead (for bounding boxes)."""
     return torch.where(members >= 0, members, members[:, :1])
-
-
-def closest_points(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    """Closest points ``(N, 3)`` to ``p (N, 3)`` on triangles ``(a, b, c)`` each ``(N, 3)`` (Ericson 5.1.5;
-    a triangle without area is handled through its edges)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    safe = torch.where(denom != 0, denom, torch.ones_like(denom))
-    q = a + ab * (vb / safe)[:, None] + ac * (vc / safe)[:, None]
-
-    def ratio(n: Tensor, d: Tensor) -> Tensor:
-        return (n / torch.where(d != 0, d, torch.ones_like(d))).clamp(0.0, 1.0)[:, None]
-
-    on_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    q = torch.where(on_bc[:, None], b + (c - b) * ratio(d4 - d3, (d4 - d3) + (d5 - d6)), q)
-    q = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[:, None], a + ac * ratio(d2, d2 - d6), q)
-    q = torch.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[:, None], a + ab * ratio(d1, d1 - d3), q)
-    q = torch.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
-    q = torch.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
-    q = torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
-    flat = denom.abs() <= 1e-30 * (ab.norm(dim=-1) * ac.norm(dim=-1)).clamp_min(1e-300) + 1e-300
-    if bool(flat.any()):
-        q[flat] = _edge_points(p[flat], a[flat], b[flat], c[flat])
-    return q
-
-
-def _edge_points(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    def seg(x: Tensor, y: Tensor) -> Tensor:
-        d = y - x
-        t = ((p - x) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-300)
-        return x + d * t.clamp(0, 1)[:, None]
-
-    cands = torch.stack([seg(a, b), seg(b, c), seg(a, c)])
-    k = (cands - p).norm(dim=-1).argmin(0)
-    return cands[k, torch.arange(len(p))]
 
 
 def _flat_sphere(x: Tensor, group: Tensor, member: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
@@ -611,7 +571,6 @@ __all__ = [
     "HandDistanceParams",
     "HandPartDistances",
     "HandPartGeometry",
-    "closest_points",
     "hand_part_distances",
     "hand_part_geometry",
 ]

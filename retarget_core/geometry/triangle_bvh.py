@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from retarget_core.geometry.closest_point import closest_points
+
 RAY_DIRECTION = (0.5773, 0.6183, 0.5331)  # winding rays: an oblique direction no mesh edge is drawn along
 TIE_M = 1e-12  # closest triangles this close in distance are tied (a shared edge or corner)
 QUERY_BLOCK = 8192  # queries walked together: their (query, node) frontier stays within some tens of MB
@@ -106,27 +108,12 @@ def _leaf_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, leaf: Te
     return face, boxes.vertices.reshape(-1, 3)[rows]
 
 
-def point_triangle_distance(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    """``(...)`` exact distance of points ``p (..., 3)`` to triangles ``a, b, c (..., 3)`` (Ericson's regions)."""
-    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-
-    def safe(x: Tensor) -> Tensor:
-        return torch.where(x.abs() > 1e-300, x, torch.full_like(x, 1e-300))
-
-    denom = safe(va + vb + vc)
-    q = a + ab * (vb / denom)[..., None] + ac * (vc / denom)[..., None]  # interior
-    bc_w = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
-    q = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + (c - b) * bc_w[..., None], q)
-    q = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * (d2 / safe(d2 - d6))[..., None], q)
-    q = torch.where(((d6 >= 0) & (d5 <= d6))[..., None], c, q)
-    q = torch.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + ab * (d1 / safe(d1 - d3))[..., None], q)
-    q = torch.where(((d3 >= 0) & (d4 <= d3))[..., None], b, q)
-    q = torch.where(((d1 <= 0) & (d2 <= 0))[..., None], a, q)
-    return (p - q).norm(dim=-1)
+def _distances(p: Tensor, corners: Tensor) -> Tensor:
+    """``(P, K)`` exact distance of points ``p (P, 3)`` to triangles ``corners (P, K, 3, 3)``."""
+    k = corners.shape[1]
+    flat = corners.reshape(-1, 3, 3)
+    x = p[:, None].expand(-1, k, -1).reshape(-1, 3)
+    return (x - closest_points(x, flat[:, 0], flat[:, 1], flat[:, 2])).norm(dim=-1).reshape(-1, k)
 
 
 def _box_distance(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
@@ -159,7 +146,7 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
             pair_q, node = pair_q.repeat_interleave(2), torch.stack([2 * node, 2 * node + 1], dim=1).flatten()
     pair_q, node = _nearest_leaf_first(bvh, boxes, frame, points, pair_q, node, near, bound)
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q], node)
-    d = point_triangle_distance(points[pair_q][:, None], corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
+    d = _distances(points[pair_q], corners)
     d = d.masked_fill(face < 0, math.inf).nan_to_num(nan=math.inf)
     best = points.new_full((q_n,), math.inf).scatter_reduce(0, pair_q, d.amin(dim=1), "amin")
     best = torch.where(best <= max_distance, best, torch.full_like(best, math.inf))
@@ -182,8 +169,7 @@ def _nearest_leaf_first(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, poin
     has = first < len(pair_q)
     rows = first[has]
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q[rows]], leaf[rows])
-    p = points[pair_q[rows]][:, None]
-    d = point_triangle_distance(p, corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
+    d = _distances(points[pair_q[rows]], corners)
     bound = bound.clone()
     bound[has] = torch.minimum(bound[has], d.masked_fill(face < 0, math.inf).nan_to_num(nan=math.inf).amin(dim=1))
     keep = near <= bound[pair_q] + TIE_M
@@ -237,5 +223,5 @@ def winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: 
     return points.new_zeros(q_n).index_add(0, pair_q, cross)
 
 
-__all__ = ["PosedBoxes", "TriangleBVH", "build_bvh", "closest_triangles", "point_triangle_distance", "refit",
+__all__ = ["PosedBoxes", "TriangleBVH", "build_bvh", "closest_triangles", "refit",
            "winding_numbers"]  # fmt: skip

@@ -59,9 +59,17 @@ class MeshPairs:
     def select(self, keep: Tensor) -> MeshPairs:
         return MeshPairs(self.frame[keep], self.vertex[keep], self.tri[keep], self.sign[keep], self.depth[keep])
 
+    @staticmethod
+    def concat(parts: list[MeshPairs]) -> MeshPairs:
+        """The pairs of ``parts``, one after the other (none when empty)."""
+        if not parts:
+            e = torch.zeros(0, dtype=torch.long)
+            return MeshPairs(e, e, torch.zeros(0, 3, dtype=torch.long), torch.zeros(0), torch.zeros(0))
+        return MeshPairs(*(torch.cat([getattr(m, k) for m in parts]) for k in ("frame", "vertex", "tri", "sign", "depth")))
+
     def union(self, other: MeshPairs, num_vertices: int) -> MeshPairs:
         """These pairs and ``other``'s, one per (frame, vertex): ``other``'s where both have one."""
-        both = MeshPairs(*(torch.cat([getattr(other, k), getattr(self, k)]) for k in ("frame", "vertex", "tri", "sign", "depth")))
+        both = MeshPairs.concat([other, self])
         key = both.frame * num_vertices + both.vertex
         _, inv = torch.unique(key, return_inverse=True)
         first = torch.full((int(inv.max()) + 1 if len(inv) else 0,), len(key), dtype=torch.long)
@@ -118,15 +126,7 @@ def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: flo
     """Pairs of posed frames ``posed (n, V, 3)``: tester vertices within ``reach`` of the dragged skin's posed
     box that are inside a target part, or outside within ``near`` of it; closest points on a cap fan are left
     out (the judge does). All frames at once through each part's refit tree."""
-    out = [_part_pairs(setup, t_name, posed, near, reach) for t_name in setup.trees]
-    if not out:
-        return _no_pairs()
-    return MeshPairs(*(torch.cat([getattr(m, k) for m in out]) for k in ("frame", "vertex", "tri", "sign", "depth")))
-
-
-def _no_pairs() -> MeshPairs:
-    e = torch.zeros(0, dtype=torch.long)
-    return MeshPairs(e, e, torch.zeros(0, 3, dtype=torch.long), torch.zeros(0), torch.zeros(0))
+    return MeshPairs.concat([_part_pairs(setup, t_name, posed, near, reach) for t_name in setup.trees])
 
 
 def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, reach: float) -> MeshPairs:
@@ -135,7 +135,7 @@ def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, r
     assert part is not None
     frame, vertex = _queries(setup, t_name, posed, reach)
     if len(frame) == 0:
-        return _no_pairs()
+        return MeshPairs.concat([])
     local = torch.from_numpy(part.posed(posed))  # (n, N + L, 3)
     boxes = refit(tree, local)
     q = torch.from_numpy(posed[frame.numpy(), vertex.numpy()])
@@ -146,9 +146,7 @@ def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, r
     keep = close[(inside[close] | (d[close] < near)) & ~torch.from_numpy(part.is_cap)[face[close]]]
     tri_local = tree.faces[face[keep]]
     a, b, c = (local[frame[keep], tri_local[:, k]] for k in range(3))
-    n = torch.cross(b - a, c - a, dim=-1)
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-15)
-    s0 = ((q[keep] - a) * n).sum(1)
+    s0 = plane_distance(torch.ones(len(keep), dtype=q.dtype), q[keep], a, b, c)
     depth = torch.where(inside[keep], d[keep], -d[keep])
     sign = torch.where(-depth * s0 >= 0.0, 1.0, -1.0)
     return MeshPairs(frame[keep], vertex[keep], torch.from_numpy(part.vertices)[tri_local], sign.float(), depth.float())
@@ -188,9 +186,7 @@ def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tens
             mp = find_mesh_pairs(setup, posed, near, 0.05 * character.height / 1.80)
             mp.frame += s
             out.append(mp)
-    if not out:
-        return _no_pairs()
-    return MeshPairs(*(torch.cat([getattr(m, k) for m in out]) for k in ("frame", "vertex", "tri", "sign", "depth")))
+    return MeshPairs.concat(out)
 
 
 @dataclass

@@ -373,7 +373,7 @@ def _winding(p: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
 def _brute_vertex_distances(p: torch.Tensor, tri: torch.Tensor, reach: float) -> torch.Tensor:
     """Exact distance ``(N,)`` of each point of ``p (N, 3)`` to the triangles ``tri (T, 3, 3)``, inf beyond
     ``reach``: every (point, triangle) pair whose bounding sphere is within reach, no other culling."""
-    from retarget_core.contacts.hand_distance import closest_points
+    from retarget_core.geometry.closest_point import closest_points
 
     centre = tri.mean(1)
     radius = (tri - centre[:, None]).norm(dim=-1).amax(-1)

@@ -8,13 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from retarget_core.geometry.triangle_bvh import (
-    build_bvh,
-    closest_triangles,
-    point_triangle_distance,
-    refit,
-    winding_numbers,
-)
+from retarget_core.geometry.closest_point import closest_points
+from retarget_core.geometry.triangle_bvh import build_bvh, closest_triangles, refit, winding_numbers
 
 
 def _frames() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -50,7 +45,8 @@ def test_closest_triangles_and_winding_numbers_match_libigl_on_every_frame(leaf_
         assert np.allclose(mine[close], ref[close], atol=1e-12)
         assert np.all(np.isinf(mine[~close])) and np.all(mine_face[~close] == -1)
         v, f = torch.from_numpy(verts), torch.from_numpy(faces)
-        at_face = point_triangle_distance(torch.from_numpy(q[sel][close]), *(v[f[mine_face[close], c]] for c in range(3)))
+        x = torch.from_numpy(q[sel][close])
+        at_face = (x - closest_points(x, *(v[f[mine_face[close], c]] for c in range(3)))).norm(dim=-1)
         assert np.allclose(at_face.numpy(), ref[close], atol=1e-12)  # a closest triangle (ties: the lowest index)
         inside_ref = np.abs(igl.fast_winding_number(verts, faces, q[sel])) > 0.5
         assert np.array_equal(np.abs(w.numpy()[sel]) > 0.5, inside_ref)
