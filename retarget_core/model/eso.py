@@ -43,10 +43,12 @@ from retarget_core.energy.sdf import (  # _sample_grid: the grid lookup alone, f
     vertex_clusters,
 )
 from retarget_core.energy.terms import UNIT_AREA_M2
+from retarget_core.geometry.point_poser import RowPlan, pose_rows
 from retarget_core.kinematics import forward_kinematics, linear_blend_skinning, skinning_matrices
 from retarget_core.model import energy as en
 from retarget_core.model.inference import NetworkInputs, decode_motion
 from retarget_core.model.network import RecurrentRetargeter
+from retarget_core.model.windowed_decode import DecodeWindows, plan_windows
 from retarget_core.rotations import normalize as r_normalize
 
 
@@ -144,11 +146,11 @@ def cache_pairs(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, keep_m: float) ->
     return PairCache(frame, vertex, groups)
 
 
-def cached_energy(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, cache: PairCache) -> Tensor:
-    """E_int ``(N,)`` of posed sentinels ``(N, V', 3)`` on the cached pairs only (differentiable)."""
+def cached_energy(sdf: PartSDF, x: Tensor, seg_mats: Tensor, cache: PairCache) -> Tensor:
+    """E_int ``(N,)`` of the cached pairs' posed sentinels ``x (M, 3)`` (:func:`_skin_cached`) on frames whose
+    segment transforms are ``seg_mats (N, S, 3, 4)`` (differentiable)."""
     if cache.frame.numel() == 0:
-        return posed.new_zeros(posed.shape[0])
-    x = posed.reshape(-1, 3).index_select(0, cache.frame * posed.shape[1] + cache.vertex)
+        return seg_mats.new_zeros(seg_mats.shape[0])
     dist = []
     part = torch.empty_like(cache.frame)
     for j, sel in cache.groups:
@@ -159,8 +161,23 @@ def cached_energy(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, cache: PairCach
         part[sel] = j
     smp = PairSamples(cache.frame, cache.vertex, part, torch.cat(dist))
     depth = effective_depth(sdf, smp) * sdf.scale_to_180
-    area = sdf.vertex_area.to(posed.dtype).index_select(0, cache.vertex) * sdf.scale_to_180**2 / UNIT_AREA_M2
-    return posed.new_zeros(posed.shape[0]).index_add(0, cache.frame, area * depth.pow(2))
+    area = sdf.vertex_area.to(x.dtype).index_select(0, cache.vertex) * sdf.scale_to_180**2 / UNIT_AREA_M2
+    return x.new_zeros(seg_mats.shape[0]).index_add(0, cache.frame, area * depth.pow(2))
+
+
+def _row_plan(sent: Sentinels, cache: PairCache, num_joints: int) -> RowPlan:
+    """What :func:`pose_rows` needs to skin just the cached pairs' sentinels: each row's nonzero influences."""
+    k = max(int((sent.weights > 0).sum(1).max()), 1) if len(sent.weights) else 1
+    weight, joint = sent.weights.index_select(0, cache.vertex).topk(k, dim=1)
+    return RowPlan((cache.frame[:, None] * num_joints + joint).reshape(-1), weight,
+                   sent.vertices.index_select(0, cache.vertex))  # fmt: skip
+
+
+def _skin_cached(kit: en.BodyKit, plan: RowPlan, grot: Tensor, gpos: Tensor) -> tuple[Tensor, Tensor]:
+    """The cached pairs' posed sentinels ``(M, 3)`` and the segments' skinning transforms ``(N, S, 3, 4)`` of
+    frames ``grot (N, J, 4)``, ``gpos (N, J, 3)``: only the rows the energy reads are skinned."""
+    mats = skinning_matrices(kit.rest_rot, kit.rest_pos, grot, gpos)
+    return pose_rows(plan, mats), mats[:, torch.tensor(kit.parts.joints, dtype=torch.long)]
 
 
 def _skin_sentinels(kit: en.BodyKit, sent: Sentinels, grot: Tensor, gpos: Tensor) -> tuple[Tensor, Tensor]:
@@ -253,8 +270,9 @@ class _Problem:
     """What the solve reads. flags ``(F,)`` frames flagged, opt_frames ``(P,)`` their indices; weight ``(F,)``
     the fade; active ``(A,)`` frames with a nonzero weight, w_act ``(A,)`` theirs; last: one past the last
     active frame; pen_a ``(P,)`` and c_a ``(C,)`` rows of the flagged frames and gated contacts among the
-    active ones; hold_joint ``(C,)`` the joint each touched vertex follows; interp ``(last, K)`` knots to
-    frames; planted ``(A, 4)`` foot labels, foot_cols and foot_idx the feet the rig has."""
+    active ones; hold_joint ``(C,)`` the joint each touched vertex follows; plan: how to skin the cached pairs'
+    sentinels; windows: how the decoder runs over the active span (dec_inputs hold its frames only); interp
+    ``(last, K)`` knots to frames; planted ``(A, 4)`` foot labels, foot_cols and foot_idx the feet the rig has."""
 
     model: RecurrentRetargeter
     kit: en.BodyKit
@@ -262,6 +280,7 @@ class _Problem:
     states: Tensor
     embedding: Tensor
     dec_inputs: NetworkInputs
+    windows: DecodeWindows
     flags: Tensor
     opt_frames: Tensor
     weight: Tensor
@@ -272,6 +291,7 @@ class _Problem:
     c_a: Tensor
     hold_joint: Tensor
     cache: PairCache
+    plan: RowPlan
     interp: Tensor
     planted: Tensor
     foot_cols: list[int]
@@ -296,11 +316,14 @@ def _problem(
         cache = cache_pairs(st.sent.sdf, st.posed[opt_frames], st.mats[opt_frames], keep_m)
     foot_cols = [c for c, j in enumerate(kit.foot_joints) if j >= 0]
     foot_idx = torch.tensor([kit.foot_joints[c] for c in foot_cols], dtype=torch.long)
-    dec_inputs = NetworkInputs(kit.rig, inputs.features[:, :last], inputs.heading[:, :last], inputs.copy_rot[:, :last],
-                               inputs.copy_trans[:, :last], inputs.code)  # fmt: skip
+    first = int(active[0])
+    dec_inputs = NetworkInputs(kit.rig, inputs.features[:, first:last], inputs.heading[:, first:last],
+                               inputs.copy_rot[:, first:last], inputs.copy_trans[:, first:last], inputs.code)  # fmt: skip
+    windows = plan_windows(model, states[:, :last], embedding, first)
     return _Problem(
-        model, kit, st, states, embedding, dec_inputs, flags, opt_frames, weight, active, weight[active], last,
-        position[opt_frames], position[st.c_frame], hold_joint, cache, _knot_weights(last, p.knot_frames),
+        model, kit, st, states, embedding, dec_inputs, windows, flags, opt_frames, weight, active, weight[active], last,
+        position[opt_frames], position[st.c_frame], hold_joint, cache, _row_plan(st.sent, cache, st.mats.shape[1]),
+        _knot_weights(last, p.knot_frames),
         feet[active].float(), foot_cols, foot_idx,
     )  # fmt: skip
 
@@ -314,11 +337,12 @@ def _evaluate(pb: _Problem, dh: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]
     offset = torch.einsum("tk,bkh->bth", pb.interp, dh)
     last = pb.last
     rot, trans = decode_motion(pb.model, pb.dec_inputs, pb.states[:, :last] + pb.weight[None, :last, None] * offset,
-                               pb.embedding)  # fmt: skip
-    r = rot[pb.active]
+                               pb.embedding, pb.windows)  # fmt: skip
+    local = pb.active - pb.windows.first
+    r = rot[local]
     r = torch.where((r * rot0_a).sum(-1, keepdim=True) < 0, -r, r)  # nlerp (slerp's acos has no gradient at 1)
     rot = r_normalize(rot0_a + pb.w_act[:, None, None] * (r - rot0_a))
-    trans = trans0_a + pb.w_act[:, None, None] * (trans[pb.active] - trans0_a)
+    trans = trans0_a + pb.w_act[:, None, None] * (trans[local] - trans0_a)
     grot, gpos = forward_kinematics(pb.kit.rig.skeleton.parents, rot, trans)
     return rot, trans, grot, gpos
 
@@ -348,7 +372,7 @@ def _loss(pb: _Problem, p: ESOParams, dh: Tensor, goal: Tensor) -> Tensor:
     if pb.foot_cols:
         drift = ((gpos[:, pb.foot_idx] - gpos0_a[:, pb.foot_idx]) * s).pow(2).sum(-1)
         loss = loss + p.w_foot * (pb.planted[:, pb.foot_cols] * drift).sum()
-    e_int = cached_energy(st.sent.sdf, *_skin_sentinels(kit, st.sent, grot[pb.pen_a], gpos[pb.pen_a]), pb.cache)
+    e_int = cached_energy(st.sent.sdf, *_skin_cached(kit, pb.plan, grot[pb.pen_a], gpos[pb.pen_a]), pb.cache)
     loss = loss + p.w_interpenetration * e_int.sum()
     if len(st.c_i):
         xi = en.vertex_positions(kit, grot, gpos, pb.c_a, st.c_i)

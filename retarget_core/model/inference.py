@@ -22,6 +22,7 @@ from retarget_core.model.features import (
     target_rig,
 )
 from retarget_core.model.network import RecurrentRetargeter, load_network
+from retarget_core.model.windowed_decode import DecodeWindows, decode_windows
 from retarget_core.motion import Motion
 
 WEIGHTS_PATH = Path(__file__).resolve().parents[1] / "data" / "models" / "recurrent.pt"
@@ -81,9 +82,14 @@ def network_inputs(ctx: RefineContext, base: Motion | None = None) -> NetworkInp
     return NetworkInputs(rig, feats, head, copy_rot, copy_trans, rig.code[None].to(ctx.device), rig.points[None].to(ctx.device))
 
 
-def decode_motion(model: RecurrentRetargeter, inputs: NetworkInputs, states: Tensor, embedding: Tensor) -> tuple[Tensor, Tensor]:
-    """Local rotations ``(F, J, 4)`` and translations ``(F, J, 3)`` decoded from encoder states ``(1, F, H)``."""
-    rot6, root_offset = model.decode(states, embedding)
+def decode_motion(model: RecurrentRetargeter, inputs: NetworkInputs, states: Tensor, embedding: Tensor,
+                  windows: DecodeWindows | None = None) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Local rotations ``(F, J, 4)`` and translations ``(F, J, 3)`` decoded from encoder states ``(1, F, H)``;
+    with ``windows``, of its frames ``first .. last - 1`` only (``inputs`` then hold just those frames)."""
+    if windows is None:
+        rot6, root_offset = model.decode(states, embedding)
+    else:
+        rot6, root_offset = decode_windows(model, windows, states, embedding)
     r, t = apply_residual(inputs.rig, inputs.copy_rot, inputs.copy_trans, inputs.heading, rot6, root_offset)
     return r[0], t[0]
 
