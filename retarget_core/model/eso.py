@@ -322,7 +322,7 @@ def _problem(
     windows = plan_windows(model, states[:, :last], embedding, first)
     return _Problem(
         model, kit, st, states, embedding, dec_inputs, windows, flags, opt_frames, weight, active, weight[active], last,
-        position[opt_frames], position[st.c_frame], hold_joint, cache, _row_plan(st.sent, cache, st.mats.shape[1]),
+        position[opt_frames], position[st.c_frame], hold_joint, cache, _row_plan(st.sent, cache, kit.rest_rot.shape[0]),
         _knot_weights(last, p.knot_frames),
         feet[active].float(), foot_cols, foot_idx,
     )  # fmt: skip
