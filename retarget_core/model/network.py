@@ -127,13 +127,19 @@ class RecurrentRetargeter(nn.Module):
             x = torch.cat([x, self.pointnet(points).expand(x.shape[0], -1)], dim=-1)
         return self.target_in(x)
 
+    def decoder_input(self, states: Tensor, embedding: Tensor) -> Tensor:
+        """The decoder's input ``(B, F, H + E)``: encoder states ``(B, F, H)`` beside the embedding ``(B, E)``."""
+        return torch.cat([states, embedding[:, None, :].expand(-1, states.shape[1], -1)], dim=-1)
+
+    def heads(self, h: Tensor) -> tuple[Tensor, Tensor]:
+        """Residual rotations ``(B, F, 22, 6)`` and root offsets ``(B, F, 3)`` of decoder outputs ``(B, F, H)``."""
+        return self.rotation_head(h).view(*h.shape[:2], NUM_CANONICAL, 6), self.root_head(h)
+
     def decode(self, states: Tensor, embedding: Tensor) -> tuple[Tensor, Tensor]:
         """Residual rotations ``(B, F, 22, 6)`` and root offsets ``(B, F, 3)`` from encoder states and the
         target embedding."""
-        e = embedding[:, None, :].expand(-1, states.shape[1], -1)
-        h, _ = self.decoder(torch.cat([states, e], dim=-1))
-        rot6 = self.rotation_head(h).view(*h.shape[:2], NUM_CANONICAL, 6)
-        return rot6, self.root_head(h)
+        h, _ = self.decoder(self.decoder_input(states, embedding))
+        return self.heads(h)
 
     def forward(self, source: Tensor, target: Tensor, points: Tensor | None = None) -> tuple[Tensor, Tensor]:
         return self.decode(self.encode(source), self.embed(target, points))

@@ -49,11 +49,6 @@ def _layers(gru: nn.GRU) -> list[nn.GRU]:
     return out
 
 
-def _inputs(states: Tensor, embedding: Tensor) -> Tensor:
-    """The decoder's input ``(B, F, H + E)`` (as :meth:`RecurrentRetargeter.decode` builds it)."""
-    return torch.cat([states, embedding[:, None, :].expand(-1, states.shape[1], -1)], dim=-1)
-
-
 def plan_windows(model: RecurrentRetargeter, states: Tensor, embedding: Tensor, first: int,
                  length: int = WINDOW_FRAMES, warm_up: int = WARM_UP_FRAMES) -> DecodeWindows:  # fmt: skip
     """Windows over frames ``first .. F - 1`` of the plain ``states (1, F, H)``; ``embedding (1, E)``."""
@@ -66,7 +61,7 @@ def plan_windows(model: RecurrentRetargeter, states: Tensor, embedding: Tensor, 
     window = offset // length
     keep = window * steps + (starts[window] - begin[window]) + offset % length
     with torch.no_grad():
-        x, per_layer = _inputs(states, embedding), []
+        x, per_layer = model.decoder_input(states, embedding), []
         for layer in _layers(model.decoder):
             x, _ = layer(x)
             per_layer.append(x[0])  # (F, H)
@@ -79,11 +74,9 @@ def decode_windows(model: RecurrentRetargeter, windows: DecodeWindows, states: T
                    ) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Residual rotations ``(1, N, 22, 6)`` and root offsets ``(1, N, 3)`` of frames ``first .. last - 1``
     (N of them) from states ``(1, last, H)`` (differentiable), as :meth:`RecurrentRetargeter.decode`."""
-    x = _inputs(states, embedding)[0, windows.frames]  # (B, T, H + E)
+    x = model.decoder_input(states, embedding)[0, windows.frames]  # (B, T, H + E)
     h, _ = model.decoder(x, windows.hidden.to(x.dtype))
-    h = h.reshape(-1, h.shape[-1]).index_select(0, windows.keep)[None]
-    rot6 = model.rotation_head(h).view(1, h.shape[1], -1, 6)
-    return rot6, model.root_head(h)
+    return model.heads(h.reshape(-1, h.shape[-1]).index_select(0, windows.keep)[None])
 
 
 __all__ = ["WARM_UP_FRAMES", "WINDOW_FRAMES", "DecodeWindows", "decode_windows", "plan_windows"]
