@@ -35,12 +35,12 @@ PHASES = ("choose tested vertices", "pose torso", "refit tree", "closest triangl
           "for comparison: libigl's two trees per frame")  # fmt: skip
 
 
-def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[Any, list[tuple[np.ndarray, float]], float]:
-    """Run one job with :func:`find_mesh_pairs` recorded: its setup, ``(posed (n, V, 3), reach)`` per call and
+def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[Any, list[tuple[np.ndarray, float, float]], float]:
+    """Run one job with :func:`find_mesh_pairs` recorded: its setup, ``(posed (n, V, 3), near, reach)`` per call and
     the seconds the calls took in the job."""
     import retarget_core.refine.collision_mesh as cm
 
-    calls: list[tuple[np.ndarray, float]] = []
+    calls: list[tuple[np.ndarray, float, float]] = []
     seen: dict[str, Any] = {"seconds": 0.0}
     original = cm.find_mesh_pairs
 
@@ -49,7 +49,7 @@ def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[An
         out = original(setup, posed, near, reach)
         seen["seconds"] += time.perf_counter() - t
         seen["setup"] = setup
-        calls.append((posed.copy(), reach))
+        calls.append((posed.copy(), near, reach))
         return out
 
     cm.find_mesh_pairs = recorded
@@ -60,18 +60,18 @@ def record_calls(motion: Path, target: str, frames: int, fps: float) -> tuple[An
     return seen.get("setup"), calls, float(seen["seconds"])
 
 
-def time_phases(setup: Any, calls: list[tuple[np.ndarray, float]]) -> dict[str, Any]:
+def time_phases(setup: Any, calls: list[tuple[np.ndarray, float, float]]) -> dict[str, Any]:
     """Seconds per phase over every recorded call, how many frames, queries and close queries there were, and
     for comparison what libigl's two trees per frame (the test's former way) take to build on the same frames."""
     import igl
     import torch
 
-    from retarget_core.geometry.triangle_bvh import closest_triangles, refit, winding_numbers
-    from retarget_core.refine.collision_mesh import _queries
+    from retarget_core.geometry.triangle_bvh import closest_triangles, refit
+    from retarget_core.refine.collision_mesh import _inside, _queries
 
     part, tree = setup.body.part("torso"), setup.trees["torso"]
     sec = dict.fromkeys(PHASES, 0.0)
-    counts = {"frames tested": 0, "queries": 0, "queries near the torso": 0}
+    counts = {"frames tested": 0, "queries": 0, "queries inside or within near": 0}
 
     @contextmanager
     def tick(phase: str) -> Iterator[None]:
@@ -79,7 +79,7 @@ def time_phases(setup: Any, calls: list[tuple[np.ndarray, float]]) -> dict[str, 
         yield
         sec[phase] += time.perf_counter() - t
 
-    for posed, reach in calls:
+    for posed, near, reach in calls:
         counts["frames tested"] += len(posed)
         with tick(PHASES[0]):
             frame, vertex = _queries(setup, "torso", posed, reach)
@@ -88,17 +88,17 @@ def time_phases(setup: Any, calls: list[tuple[np.ndarray, float]]) -> dict[str, 
         with tick(PHASES[2]):
             boxes = refit(tree, local)
         q = torch.from_numpy(posed[frame.numpy(), vertex.numpy()])
-        with tick(PHASES[3]):
-            _, face = closest_triangles(tree, boxes, frame, q, reach)
-        close = face >= 0
         with tick(PHASES[4]):
-            winding_numbers(tree, boxes, frame[close], q[close])
+            inside = _inside(tree, boxes, frame, q)
+        with tick(PHASES[3]):
+            _, face = closest_triangles(tree, boxes, frame, q, torch.where(inside, reach, near).to(q.dtype))
+        close = face >= 0
         with tick(PHASES[5]):
             for f in torch.unique(frame).tolist():
                 igl.AABB().init(local[f].numpy(), part.faces)
                 igl.FastWindingNumberBVH().init(local[f].numpy(), part.faces)
         counts["queries"] += len(q)
-        counts["queries near the torso"] += int(close.sum())
+        counts["queries inside or within near"] += int(close.sum())
     return {"torso faces": int(len(part.faces)), **counts, "seconds": {k: round(v, 3) for k, v in sec.items()}}
 
 

@@ -122,18 +122,20 @@ def _box_distance(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
 
 
 def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: Tensor,
-                      max_distance: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+                      max_distance: float | Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Exact distance ``(Q,)`` from ``points (Q, 3)`` (posed frame ``frame (Q,)``) to the triangles, and the
     closest triangle ``(Q,)`` (the lowest index where several are: a point nearest a shared edge); ``inf`` and -1
-    where none is within ``max_distance``. Blocks of :data:`QUERY_BLOCK` queries bound the memory."""
-    if len(points) > QUERY_BLOCK:
-        parts = [closest_triangles(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK], max_distance)
-                 for s in range(0, len(points), QUERY_BLOCK)]  # fmt: skip
-        return torch.cat([d for d, _ in parts]), torch.cat([f for _, f in parts])
+    where none is within ``max_distance`` (one for all, or ``(Q,)``: a tighter bound prunes the walk sooner).
+    Blocks of :data:`QUERY_BLOCK` queries bound the memory."""
     q_n = len(points)
+    limit = torch.as_tensor(max_distance, dtype=points.dtype).expand(q_n)
+    if q_n > QUERY_BLOCK:
+        parts = [closest_triangles(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK],
+                                   limit[s : s + QUERY_BLOCK]) for s in range(0, q_n, QUERY_BLOCK)]  # fmt: skip
+        return torch.cat([d for d, _ in parts]), torch.cat([f for _, f in parts])
     flat = boxes.vertices.reshape(-1, 3)
     v_n = boxes.vertices.shape[1]
-    bound = points.new_full((q_n,), max_distance)
+    bound = limit.clone()
     pair_q, node = torch.arange(q_n), torch.zeros(q_n, dtype=torch.long)
     for level in range(bvh.depth + 1):
         pf = frame[pair_q]
@@ -149,7 +151,7 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
     d = _distances(points[pair_q], corners)
     d = d.masked_fill(face < 0, math.inf).nan_to_num(nan=math.inf)
     best = points.new_full((q_n,), math.inf).scatter_reduce(0, pair_q, d.amin(dim=1), "amin")
-    best = torch.where(best <= max_distance, best, torch.full_like(best, math.inf))
+    best = torch.where(best <= limit, best, torch.full_like(best, math.inf))
     tied = d <= (best[pair_q] + TIE_M)[:, None]  # of closest triangles tied at an edge or corner, the lowest index
     none = len(bvh.faces)
     first = torch.where(tied, face, torch.full_like(face, none)).amin(dim=1)

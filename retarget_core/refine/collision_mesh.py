@@ -23,7 +23,14 @@ from torch import Tensor
 
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
-from retarget_core.geometry.triangle_bvh import TriangleBVH, build_bvh, closest_triangles, refit, winding_numbers
+from retarget_core.geometry.triangle_bvh import (
+    PosedBoxes,
+    TriangleBVH,
+    build_bvh,
+    closest_triangles,
+    refit,
+    winding_numbers,
+)
 from retarget_core.metrics.acceptance_body import PARTS, AcceptanceBody, acceptance_body
 
 MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm": ("torso",)}
@@ -139,10 +146,10 @@ def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, r
     local = torch.from_numpy(part.posed(posed))  # (n, N + L, 3)
     boxes = refit(tree, local)
     q = torch.from_numpy(posed[frame.numpy(), vertex.numpy()])
-    d, face = closest_triangles(tree, boxes, frame, q, reach)
-    close = torch.nonzero(face >= 0).flatten()  # deeper than reach: the rigid SDFs see it
-    inside = torch.zeros(len(q), dtype=torch.bool)
-    inside[close] = winding_numbers(tree, boxes, frame[close], q[close]).abs() > 0.5
+    inside = _inside(tree, boxes, frame, q)
+    # inside: the depth up to reach (deeper: the rigid SDFs see it); outside: only whether within near
+    d, face = closest_triangles(tree, boxes, frame, q, torch.where(inside, reach, near).to(q.dtype))
+    close = torch.nonzero(face >= 0).flatten()
     keep = close[(inside[close] | (d[close] < near)) & ~torch.from_numpy(part.is_cap)[face[close]]]
     tri_local = tree.faces[face[keep]]
     a, b, c = (local[frame[keep], tri_local[:, k]] for k in range(3))
@@ -150,6 +157,16 @@ def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, r
     depth = torch.where(inside[keep], d[keep], -d[keep])
     sign = torch.where(-depth * s0 >= 0.0, 1.0, -1.0)
     return MeshPairs(frame[keep], vertex[keep], torch.from_numpy(part.vertices)[tri_local], sign.float(), depth.float())
+
+
+def _inside(tree: TriangleBVH, boxes: PosedBoxes, frame: Tensor, q: Tensor) -> Tensor:
+    """``(Q,)`` whether each of ``q (Q, 3)`` is inside the closed part in posed frame ``frame (Q,)``: winding
+    numbers for the points within the part's box (the others are outside)."""
+    lo, hi = boxes.lo[0][frame, 0], boxes.hi[0][frame, 0]  # the root's box per query
+    in_box = torch.nonzero(((q >= lo) & (q <= hi)).all(dim=-1)).flatten()
+    inside = torch.zeros(len(q), dtype=torch.bool)
+    inside[in_box] = winding_numbers(tree, boxes, frame[in_box], q[in_box]).abs() > 0.5
+    return inside
 
 
 def _queries(setup: MeshSetup, t_name: str, posed: np.ndarray, reach: float) -> tuple[Tensor, Tensor]:

@@ -84,3 +84,19 @@ def test_queries_walked_in_blocks_read_the_same(monkeypatch: pytest.MonkeyPatch)
     blocked = closest_triangles(tree, boxes, fr, q, 0.2), winding_numbers(tree, boxes, fr, q)
     assert torch.equal(whole[0][0], blocked[0][0]) and torch.equal(whole[0][1], blocked[0][1])
     assert torch.equal(whole[1], blocked[1])
+
+
+def test_a_bound_per_query_reads_as_the_common_bound_cut_at_each_querys_own() -> None:
+    rest, faces, frames = _frames()
+    tree = build_bvh(rest, faces)
+    boxes = refit(tree, torch.from_numpy(np.stack(frames)))
+    rng = np.random.default_rng(2)
+    q = torch.from_numpy(rng.uniform(-1.5, 1.8, (2000, 3)))
+    fr = torch.from_numpy(rng.integers(0, len(frames), len(q)))
+    bound = torch.from_numpy(rng.choice([0.02, 0.2], len(q)))
+    d_all, face_all = closest_triangles(tree, boxes, fr, q, 0.2)
+    d, face = closest_triangles(tree, boxes, fr, q, bound)
+    within = d_all <= bound
+    assert int(within.sum()) > 50 and int((~within & (face_all >= 0)).sum()) > 50  # both kinds were asked
+    assert torch.equal(d[within], d_all[within]) and torch.equal(face[within], face_all[within])
+    assert bool(torch.isinf(d[~within]).all()) and bool((face[~within] == -1).all())
