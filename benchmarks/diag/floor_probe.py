@@ -38,6 +38,27 @@ def lift_envelope(depth: Tensor, ramp: int) -> Tensor:
     return deepest * (1.0 - fallback_weights(1.0 - depth / deepest, ramp).to(depth.dtype))
 
 
+def min_jerk_lift(depth: Tensor, planted: Tensor | None, weight: float, cap: float) -> Tensor:
+    """``(F,)`` root lift of least third difference (plus ``weight`` times its size) that is at least ``depth (F,)``
+    (m) on every frame and at most ``cap`` (m, or that frame's depth) where a source foot is planted
+    (``planted (F,)`` bool): bounded least squares."""
+    import numpy as np
+    from scipy import sparse
+    from scipy.optimize import lsq_linear
+
+    f_n = len(depth)
+    need = depth.double().numpy()
+    if f_n < 4 or need.max() <= 0.0:
+        return torch.zeros_like(depth)
+    d3 = sparse.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(f_n - 3, f_n))
+    a = sparse.vstack([d3, np.sqrt(weight) * sparse.eye(f_n)]).tocsr()
+    upper = np.full(f_n, np.inf)
+    if planted is not None:
+        upper[planted.numpy()] = np.maximum(need[planted.numpy()], cap)
+    fit = lsq_linear(a, np.zeros(a.shape[0]), bounds=(need, upper), lsmr_tol="auto", tol=1e-12)
+    return torch.from_numpy(np.maximum(fit.x, need)).to(depth.dtype)
+
+
 def main() -> None:
     a = case_parser(__doc__, frames=300).parse_args()
     torch.set_num_threads(1)
@@ -60,6 +81,12 @@ def main() -> None:
         trans = motion.translations.clone()
         trans[:, root, 1] += lift_envelope(depth, ramp).to(trans.dtype)
         show(f"lift r{ramp}", Motion(motion.skeleton, motion.fps, motion.rotations, trans, motion.name))
+    planted = ctx.planted.any(-1) if ctx.planted is not None else None
+    for weight in (1e-4, 1e-2):
+        for cap in (0.005, 0.01):
+            trans = motion.translations.clone()
+            trans[:, root, 1] += min_jerk_lift(depth, planted, weight, cap).to(trans.dtype)
+            show(f"mj {weight:g} {cap:g}", Motion(motion.skeleton, motion.fps, motion.rotations, trans, motion.name))
 
 
 if __name__ == "__main__":
