@@ -43,6 +43,8 @@ STAGES: tuple[StageInfo, ...] = (
               "retarget_core.refine.collisions", 0.2),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
               "retarget_core.refine.foot_lock", 0.03),
+    StageInfo("floor", "Floor", "the body lifted, with least jerk, where it sinks below the floor",
+              "retarget_core.refine.floor", 0.02),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
               "retarget_core.refine.fingers", 0.01),
 )  # fmt: skip

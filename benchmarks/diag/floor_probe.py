@@ -1,6 +1,7 @@
 """Probe for the ground-penetration target: one clip x body through the default chain, then the root raised by a
 smooth upper envelope of the lowest vertex's depth below y = 0 (each sunk frame's depth, fading over ``ramp``
-frames on either side), for a few ramps; the judge's figures printed for each. Nothing here is in the method.
+frames on either side), for a few ramps, and by the floor stage (:mod:`retarget_core.refine.floor`: a lift of
+least jerk, the method's way); the judge's figures printed for each. The chain here runs without its floor stage.
 
     PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/floor_probe.py \\
         ../shared/data/motions/cmu_hard/131_01.bvh ~/.cache/retarget/heldout/hard_heaviest-8fa5de322a2a.glb
@@ -18,7 +19,7 @@ from retarget_core.metrics.acceptance import figures_from_measures, measure_acce
 from retarget_core.metrics.feet_acceptance import lowest_vertex_heights
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
-from retarget_core.refine import refinement_stages
+from retarget_core.refine import floor, refinement_stages
 from retarget_core.refine.temporal import fallback_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
@@ -38,27 +39,6 @@ def lift_envelope(depth: Tensor, ramp: int) -> Tensor:
     return deepest * (1.0 - fallback_weights(1.0 - depth / deepest, ramp).to(depth.dtype))
 
 
-def min_jerk_lift(depth: Tensor, planted: Tensor | None, weight: float, cap: float) -> Tensor:
-    """``(F,)`` root lift of least third difference (plus ``weight`` times its size) that is at least ``depth (F,)``
-    (m) on every frame and at most ``cap`` (m, or that frame's depth) where a source foot is planted
-    (``planted (F,)`` bool): bounded least squares."""
-    import numpy as np
-    from scipy import sparse
-    from scipy.optimize import lsq_linear
-
-    f_n = len(depth)
-    need = depth.double().numpy()
-    if f_n < 4 or need.max() <= 0.0:
-        return torch.zeros_like(depth)
-    d3 = sparse.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(f_n - 3, f_n))
-    a = sparse.vstack([d3, np.sqrt(weight) * sparse.eye(f_n)]).tocsr()
-    upper = np.full(f_n, np.inf)
-    if planted is not None:
-        upper[planted.numpy()] = np.maximum(need[planted.numpy()], cap)
-    fit = lsq_linear(a, np.zeros(a.shape[0]), bounds=(need, upper), lsmr_tol="auto", tol=1e-12)
-    return torch.from_numpy(np.maximum(fit.x, need)).to(depth.dtype)
-
-
 def main() -> None:
     a = case_parser(__doc__, frames=300).parse_args()
     torch.set_num_threads(1)
@@ -67,26 +47,21 @@ def main() -> None:
     ctx, target = refine_context(prepared), prepared.target
     motion = prepared.before
     for info, stage in refinement_stages():
-        if stage is not None and prepared.inputs.options.stages.enabled(info.name):
+        if stage is not None and info.name != "floor" and prepared.inputs.options.stages.enabled(info.name):
             motion = stage(ctx, motion).motion
 
     def show(name: str, m: Motion) -> None:
         f = figures_from_measures(measure_acceptance(target.character, target.mapping, m), source)
         print(f"{name:>10}: " + "  ".join(f"{k} {getattr(f, k):.4g}" for k in FIGURES), flush=True)
 
-    show("chain", motion)
+    show("no floor", motion)
     depth = (-lowest_vertex_heights(target.character, motion)).clamp_min(0.0)
     root = motion.skeleton.parents.index(-1)
     for ramp in RAMPS:
         trans = motion.translations.clone()
         trans[:, root, 1] += lift_envelope(depth, ramp).to(trans.dtype)
         show(f"lift r{ramp}", Motion(motion.skeleton, motion.fps, motion.rotations, trans, motion.name))
-    planted = ctx.planted.any(-1) if ctx.planted is not None else None
-    for weight in (1e-4, 1e-2):
-        for cap in (0.005, 0.01):
-            trans = motion.translations.clone()
-            trans[:, root, 1] += min_jerk_lift(depth, planted, weight, cap).to(trans.dtype)
-            show(f"mj {weight:g} {cap:g}", Motion(motion.skeleton, motion.fps, motion.rotations, trans, motion.name))
+    show("floor", floor.run(ctx, motion).motion)
 
 
 if __name__ == "__main__":
