@@ -9,7 +9,7 @@ the bounded least-squares solution of
 
     minimise  sum (third difference of L)^2 + size_weight * sum L^2      (per frame at 30 fps)
     subject to  L >= depth of the lowest body vertex, where deeper than the judge's allowance,
-                L <= float_m - height of the lowest foot vertex, where a source foot is planted
+                L <= float_m - height of each planted foot's lowest vertex (the source's plants)
 
 so it rises and falls as smoothly as the frames it must clear allow, is zero far from them, and never lifts a
 planted foot off the floor by more than the judge's float allowance (a knee or hand sunk while a foot is planted
@@ -83,21 +83,23 @@ def box_qp(q: sparse.csc_matrix, lower: np.ndarray, upper: np.ndarray, rounds: i
     return np.clip(x, lower, upper)
 
 
-def planted_frames(ctx: RefineContext) -> Tensor:
-    """``(F,)`` frames on which a source foot is planted (the judge's labels where known, else the detector's)."""
+def planted_feet(ctx: RefineContext) -> Tensor:
+    """``(F, 2)`` left and right foot of the source planted (the judge's labels where known, else the detector's
+    toe or heel)."""
     if ctx.planted is not None:
-        return ctx.planted.bool().any(-1)
-    return ctx.feet.labels.bool().any(-1)
+        return ctx.planted.bool()
+    labels = ctx.feet.labels.bool()
+    return torch.stack([labels[:, 0] | labels[:, 1], labels[:, 2] | labels[:, 3]], dim=1)
 
 
 def body_heights(ctx: RefineContext, motion: Motion) -> tuple[Tensor, Tensor]:
-    """``(F,)`` height of the lowest body vertex (accessories left out) and ``(F,)`` of the lowest foot vertex (m)."""
+    """``(F,)`` height of the lowest body vertex (accessories left out) and ``(F, 2)`` of each foot's lowest vertex
+    (m)."""
     grot, gpos = motion.global_transforms()
     body = ctx.parts.body
     index = torch.arange(ctx.target.num_vertices) if body is None else torch.nonzero(body).flatten()
     lowest = ctx.target.pose_vertex_subset(index, grot, gpos)[..., 1].amin(-1)
-    feet = lowest_foot_heights(ctx.target, ctx.target_mapping, motion).amin(-1)
-    return lowest.double(), feet.double()
+    return lowest.double(), lowest_foot_heights(ctx.target, ctx.target_mapping, motion).double()
 
 
 def canonical_joints(motion: Motion, joints: dict[str, int], names: list[str], height: float) -> Tensor:
@@ -155,9 +157,11 @@ def run(ctx: RefineContext, motion: Motion, params: FloorParams | None = None) -
     }
     if not bool(sunk.any()):
         return StageOutcome(motion, {**report, "frames_changed": 0})
-    planted = planted_frames(ctx)[: len(depth)]
+    feet = planted_feet(ctx)[: len(depth)]
+    planted = feet.any(-1)
+    highest = torch.where(feet, foot, -torch.inf).amax(-1)  # (F,) the highest planted foot
     ceiling = torch.full_like(depth, float("inf"))
-    ceiling[planted] = (p.float_m * to_body - foot[planted]).clamp_min(0.0)  # a sunk foot may come up
+    ceiling[planted] = (p.float_m * to_body - highest[planted]).clamp_min(0.0)  # a sunk foot may come up
     lift = least_jerk_lift(torch.minimum(torch.where(sunk, depth, 0.0), ceiling), ceiling, motion.fps, p.size_weight)
     share = jerk_share(ctx, motion, lift, p.jerk_ratio)
     lift = lift * share
@@ -175,4 +179,4 @@ def run(ctx: RefineContext, motion: Motion, params: FloorParams | None = None) -
     return StageOutcome(Motion(motion.skeleton, motion.fps, motion.rotations.clone(), trans, motion.name), report)
 
 
-__all__ = ["FloorParams", "least_jerk_lift", "planted_frames", "run"]
+__all__ = ["FloorParams", "least_jerk_lift", "planted_feet", "run"]
