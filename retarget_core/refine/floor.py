@@ -102,6 +102,14 @@ def body_heights(ctx: RefineContext, motion: Motion) -> tuple[Tensor, Tensor]:
     return lowest.double(), lowest_foot_heights(ctx.target, ctx.target_mapping, motion).double()
 
 
+def lift_ceiling(planted: Tensor, foot: Tensor, float_m: float) -> Tensor:
+    """``(F,)`` the most each frame may be lifted: ``float_m`` less the height of its highest planted foot
+    (``planted (F, 2)``, ``foot (F, 2)`` each foot's lowest vertex; a sunk planted foot may come up), ``inf`` where
+    no foot is planted. A free foot does not count: the judge's float reads the planted feet only."""
+    highest = torch.where(planted, foot, -torch.inf).amax(-1)
+    return torch.where(planted.any(-1), (float_m - highest).clamp_min(0.0), torch.inf)
+
+
 def canonical_joints(motion: Motion, joints: dict[str, int], names: list[str], height: float) -> Tensor:
     """``(F, C, 3)`` world positions of the canonical joints ``names`` (their indices in ``joints``), at 1.80 m."""
     _, gpos = motion.global_transforms()
@@ -159,9 +167,7 @@ def run(ctx: RefineContext, motion: Motion, params: FloorParams | None = None) -
         return StageOutcome(motion, {**report, "frames_changed": 0})
     feet = planted_feet(ctx)[: len(depth)]
     planted = feet.any(-1)
-    highest = torch.where(feet, foot, -torch.inf).amax(-1)  # (F,) the highest planted foot
-    ceiling = torch.full_like(depth, float("inf"))
-    ceiling[planted] = (p.float_m * to_body - highest[planted]).clamp_min(0.0)  # a sunk foot may come up
+    ceiling = lift_ceiling(feet, foot, p.float_m * to_body)
     lift = least_jerk_lift(torch.minimum(torch.where(sunk, depth, 0.0), ceiling), ceiling, motion.fps, p.size_weight)
     share = jerk_share(ctx, motion, lift, p.jerk_ratio)
     lift = lift * share

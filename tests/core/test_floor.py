@@ -52,6 +52,15 @@ def test_the_lift_does_not_depend_on_the_frame_rate() -> None:
     assert float((a - b[::4]).abs().max()) < 0.003
 
 
+def test_only_planted_feet_cap_the_lift() -> None:
+    """A free foot 5 cm under the floor beside a planted foot on it: the lift may take the planted foot to 1 cm,
+    not 6; a planted foot 3 cm under may come up 4 cm; no plant, no cap."""
+    planted = torch.tensor([[False, True], [True, False], [False, False]])
+    foot = torch.tensor([[-0.05, 0.0], [-0.03, 0.2], [-0.05, -0.05]], dtype=torch.float64)
+    ceiling = floor.lift_ceiling(planted, foot, FLOAT_M)
+    assert torch.allclose(ceiling[:2], torch.tensor([0.01, 0.04], dtype=torch.float64)) and math.isinf(ceiling[2])
+
+
 @pytest.fixture(scope="module")
 def harness(samples: Path) -> Harness:
     walk: LoadedMotion = load_motion(samples / "motions" / "007_03.bvh")  # a walk, 60 fps
