@@ -7,9 +7,17 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 from retarget_core.geometry.closest_point import closest_points
-from retarget_core.geometry.triangle_bvh import build_bvh, closest_triangles, refit, winding_numbers
+from retarget_core.geometry.triangle_bvh import (
+    PosedBoxes,
+    TriangleBVH,
+    build_bvh,
+    closest_triangles,
+    refit,
+    winding_numbers,
+)
 
 
 def _frames() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -70,15 +78,22 @@ def test_an_empty_triangle_set_is_refused_by_name() -> None:
         build_bvh(np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64))
 
 
-def test_queries_walked_in_blocks_read_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
-    import retarget_core.geometry.triangle_bvh as tb
-
+def _posed_queries(seed: int, n: int) -> tuple[TriangleBVH, PosedBoxes, Tensor, Tensor, np.random.Generator]:
+    """The sphere's tree refit on its 5 frames, ``n`` random query points and their frames, and the generator
+    (seeded ``seed``) for what a test draws next."""
     rest, faces, frames = _frames()
     tree = build_bvh(rest, faces)
     boxes = refit(tree, torch.from_numpy(np.stack(frames)))
-    rng = np.random.default_rng(1)
-    q = torch.from_numpy(rng.uniform(-1.5, 1.8, (500, 3)))
+    rng = np.random.default_rng(seed)
+    q = torch.from_numpy(rng.uniform(-1.5, 1.8, (n, 3)))
     fr = torch.from_numpy(rng.integers(0, len(frames), len(q)))
+    return tree, boxes, fr, q, rng
+
+
+def test_queries_walked_in_blocks_read_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    import retarget_core.geometry.triangle_bvh as tb
+
+    tree, boxes, fr, q, _ = _posed_queries(1, 500)
     whole = closest_triangles(tree, boxes, fr, q, 0.2), winding_numbers(tree, boxes, fr, q)
     monkeypatch.setattr(tb, "QUERY_BLOCK", 64)
     blocked = closest_triangles(tree, boxes, fr, q, 0.2), winding_numbers(tree, boxes, fr, q)
@@ -87,12 +102,7 @@ def test_queries_walked_in_blocks_read_the_same(monkeypatch: pytest.MonkeyPatch)
 
 
 def test_a_bound_per_query_reads_as_the_common_bound_cut_at_each_querys_own() -> None:
-    rest, faces, frames = _frames()
-    tree = build_bvh(rest, faces)
-    boxes = refit(tree, torch.from_numpy(np.stack(frames)))
-    rng = np.random.default_rng(2)
-    q = torch.from_numpy(rng.uniform(-1.5, 1.8, (2000, 3)))
-    fr = torch.from_numpy(rng.integers(0, len(frames), len(q)))
+    tree, boxes, fr, q, rng = _posed_queries(2, 2000)
     bound = torch.from_numpy(rng.choice([0.02, 0.2], len(q)))
     d_all, face_all = closest_triangles(tree, boxes, fr, q, 0.2)
     d, face = closest_triangles(tree, boxes, fr, q, bound)
