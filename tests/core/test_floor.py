@@ -24,10 +24,6 @@ FLOAT_M = 0.01  # ACCEPTANCE.md: float at most +1 cm
 SINK_M = 0.06  # how far the built dip takes the body below the floor (a kneel or a cartwheel's hands)
 
 
-def third_difference(x: Tensor) -> Tensor:
-    return x[3:] - 3 * x[2:-1] + 3 * x[1:-2] - x[:-3]
-
-
 def test_the_lift_clears_every_frame_with_far_less_jerk_than_following_the_depth() -> None:
     depth = torch.zeros(120, dtype=torch.float64)
     depth[40:52] = 0.05  # ten frames 5 cm under the floor, sharp edges
@@ -35,7 +31,7 @@ def test_the_lift_clears_every_frame_with_far_less_jerk_than_following_the_depth
     ceiling[:12] = ceiling[100:] = 0.005  # planted feet at both ends
     lift = floor.least_jerk_lift(depth, ceiling, 30.0, floor.FloorParams().size_weight)
     assert bool((lift >= depth).all()) and bool((lift[:12] <= 0.005).all()) and bool((lift[100:] <= 0.005).all())
-    assert float(third_difference(lift).abs().max()) < 0.1 * float(third_difference(depth).abs().max())
+    assert float(floor.third_difference(lift).abs().max()) < 0.1 * float(floor.third_difference(depth).abs().max())
     assert float(lift[:5].max()) < 0.002  # zero far from the frames it clears
 
 
