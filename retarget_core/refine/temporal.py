@@ -42,16 +42,31 @@ def smoothstep(x: Tensor) -> Tensor:
 
 def fallback_weights(cap: Tensor, ramp: int) -> Tensor:
     """``(F,)`` weights in 0..1 that are at most ``cap (F,)`` on every frame and rise smoothly back to 1 over
-    ``ramp`` frames around the capped ones: ``w(t) = min_u cap_u + (1 - cap_u) * smoothstep(|t - u| / ramp)``
-    (a span where a change made things worse returns smoothly towards the input)."""
+    ``ramp`` frames around the capped ones: ``w(t) = min_u c_u + (1 - c_u) * smoothstep(|t - u| / ramp)`` over the
+    caps ``c`` closed first (a gap under ``ramp`` frames between two capped spans takes their higher cap), so a
+    span where a change made things worse returns smoothly towards the input, without blips between spans."""
     f_n = cap.shape[0]
-    idx = torch.nonzero(cap < 1.0).flatten()
+    closed = close_caps(cap.float(), ramp)
+    idx = torch.nonzero(closed < 1.0).flatten()
     if len(idx) == 0:
         return torch.ones(f_n)
     t = torch.arange(f_n, dtype=torch.float32)
-    c = cap[idx].float()[None, :]
+    c = closed[idx][None, :]
     ramped = c + (1.0 - c) * smoothstep((t[:, None] - idx[None, :].float()).abs() / max(ramp, 1))
     return ramped.amin(dim=1)
 
 
-__all__ = ["bspline_basis", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep"]
+def close_caps(cap: Tensor, ramp: int) -> Tensor:
+    """``(F,)`` caps lowered in the gaps under ``ramp`` frames between capped spans (a grey closing of the
+    withdrawn share ``1 - cap``: dilation then erosion over ``ramp // 2`` frames each side); never above ``cap``."""
+    half = max(ramp // 2, 0)
+    if half == 0:
+        return cap
+    pool = torch.nn.functional.max_pool1d
+    withdrawn = (1.0 - cap)[None, None]
+    dilated = pool(withdrawn, 2 * half + 1, stride=1, padding=half)
+    closed = -pool(-dilated, 2 * half + 1, stride=1, padding=half)
+    return torch.minimum(cap, 1.0 - closed[0, 0])
+
+
+__all__ = ["bspline_basis", "close_caps", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep"]

@@ -12,6 +12,7 @@ from torch import Tensor
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
+from retarget_core.refine.temporal import fallback_weights
 
 F = 40
 NO_CONTACTS = ContactInstances(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long))
@@ -77,3 +78,27 @@ def test_changes_never_measured_go_back_to_the_input() -> None:
     guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, one_round)
     assert bool((guard.weight == 0.0).all())
     assert torch.equal(guard.final.max_depth, before.max_depth)
+
+
+def test_a_change_worse_at_every_weight_goes_back_with_a_blend_not_a_step() -> None:
+    harm = torch.zeros(F)
+    harm[15:25] = 0.05  # worse at any weight: falls back on every round, then settles
+    before, measure = _toy(harm - 0.005)
+    ramp8 = FallbackSettings(rounds=2, factor=0.5, floor=0.2, ramp=8)
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, ramp8)
+    assert bool((guard.weight[15:25] == 0.0).all())
+    assert float(guard.weight.diff().abs().max()) < 0.25  # a smoothstep over 8 frames, never a jump to 0
+    assert guard.worse_left == 0
+    assert bool((guard.final.max_depth <= before.max_depth + 0.002).all())
+
+
+def test_blends_between_two_close_spans_do_not_leave_blips() -> None:
+    cap = torch.ones(F)
+    cap[10], cap[14] = 0.0, 0.0  # two withdrawn frames 4 apart: the frames between go back too
+    w = fallback_weights(cap, 8)
+    assert bool((w[10:15] == 0.0).all())
+    assert bool((w <= cap).all())
+    assert float(w[0]) == 1.0 and float(w[-1]) == 1.0
+    far = torch.ones(F)
+    far[5], far[30] = 0.0, 0.0  # 25 apart: two blends, full weight between
+    assert float(fallback_weights(far, 8)[17]) == 1.0
