@@ -167,7 +167,7 @@ def resolve_learned(ctx: RefineContext, motion: Motion, params: LearnedCollision
         "method": "paper 2 per-limb learned resolver (collision matrix, semantic matrix, dense residual quaternions)",
         "frames_changed": int(changed.sum()), "frames_colliding_input": int(len(active)),
         "fallback_frames": int((weight < 1).sum()),
-        "worse_frames_left": guard.worse_left,
+        "settle_rounds": guard.settle_rounds,
         "mean_joint_change_deg": round(float(angle[changed].mean()) if bool(changed.any()) else 0.0, 3),
         "max_joint_change_deg": round(float(angle.max()) if angle.numel() else 0.0, 2),
         "model_ms_per_frame": round(1000 * model_s / max(len(active), 1), 4),

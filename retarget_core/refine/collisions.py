@@ -370,7 +370,7 @@ def resolve(ctx: RefineContext, motion: Motion, params: CollisionParams | None =
         changed = resid.abs().amax(dim=(1, 2)) * weight > s.params.changed_rad
         out_rot[~changed] = s.rot_in[~changed]
         s.report["fallback_frames"] = int((weight < 1 - 1e-6).sum())
-        s.report["worse_frames_left"] = s.guard.worse_left
+        s.report["settle_rounds"] = s.guard.settle_rounds
         s.report["repair_rounds"] = s.repairs
     outcome = finish(s, out_rot, changed, t0, cpu0)
     ctx.report_progress(1.0)

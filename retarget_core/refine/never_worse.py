@@ -46,7 +46,7 @@ class NeverWorse:
     weight: Tensor
     cap: Tensor
     contacts: ContactInstances
-    worse_left: int = 0  # frames still worse when settling ran out of rounds (see :func:`settle`)
+    settle_rounds: int = 0  # rounds :func:`settle` took
 
     @classmethod
     def start(cls, before: FrameCheck, contacts: ContactInstances) -> NeverWorse:
@@ -128,18 +128,13 @@ def run_never_worse(state: NeverWorse, frames: Tensor, measure: Measure, limits:
 def settle(state: NeverWorse, frames: Tensor, measure: Measure, limits: WorseLimits, scale: float,
            settings: FallbackSettings) -> None:
     """The rounds ran out with ``frames`` unmeasured: measure them; worse ones go back to the input, blended over
-    the ramp, and the blend's frames are measured next, until none is worse, ``settings.rounds`` times at most.
-    Frames still worse after that keep their blend (rather than a step in the motion) and are counted in
-    ``state.worse_left``."""
-    for last in [False] * settings.rounds + [True]:
-        if len(frames) == 0:
-            return
+    the ramp, and the blend's frames are measured next, until none is worse. Each round sends at least one more
+    frame back to the input, so it ends within ``F`` rounds; a round measures only the blend's frames."""
+    while len(frames):
         after = measure(state.weight, frames)
         worse = worse_frames(state.before, after, state.contacts, limits, scale)
         state.merge(after)
-        if last:
-            state.worse_left = int(worse.sum())
-            return
+        state.settle_rounds += 1
         frames = state.give_up(frames[worse], settings.ramp)
 
 

@@ -88,7 +88,7 @@ def test_a_change_worse_at_every_weight_goes_back_with_a_blend_not_a_step() -> N
     guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, ramp8)
     assert bool((guard.weight[15:25] == 0.0).all())
     assert float(guard.weight.diff().abs().max()) < 0.25  # a smoothstep over 8 frames, never a jump to 0
-    assert guard.worse_left == 0
+    assert guard.settle_rounds >= 1  # the rounds ran out: what was left settled with a blend
     assert bool((guard.final.max_depth <= before.max_depth + 0.002).all())
 
 
