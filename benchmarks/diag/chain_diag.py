@@ -31,6 +31,11 @@ FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "fa
            "end_effector_error_cm", "jerk_ratio")  # fmt: skip
 
 
+def _rounded(value: float | None) -> float | None:
+    """A figure to 4 decimals; None stays None (a clip without source contacts has no preservation)."""
+    return None if value is None else round(float(value), 4)
+
+
 def main() -> None:
     ap = case_parser(__doc__)
     ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
@@ -47,7 +52,7 @@ def main() -> None:
 
     def report(stage: str, motion: Motion, seconds: float) -> None:
         f = figures_from_measures(measure_acceptance(target.character, target.mapping, motion), source)
-        row = {"stage": stage, "seconds": round(seconds, 2), **{k: round(float(getattr(f, k)), 4) for k in FIGURES}}
+        row = {"stage": stage, "seconds": round(seconds, 2), **{k: _rounded(getattr(f, k)) for k in FIGURES}}
         rows.append(row)
         print(f"{stage:>12}: " + "  ".join(f"{k} {row[k]}" for k in FIGURES) + f"  ({seconds:.1f} s)", flush=True)
 
