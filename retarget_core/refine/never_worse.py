@@ -93,6 +93,7 @@ class NeverWorse:
         self.restore(lowered[new_w[lowered] == 0])
         return lowered[new_w[lowered] > 0]
 
+
 def copy_check(c: FrameCheck) -> FrameCheck:
     """A copy of ``c`` whose per-frame figures can be changed in place (``depth`` shared)."""
     return FrameCheck(c.frames, c.volume.clone(), c.max_depth.clone(), c.count.clone(), c.depth, c.contact.clone())
@@ -125,8 +126,9 @@ def run_never_worse(state: NeverWorse, frames: Tensor, measure: Measure, limits:
     return state
 
 
-def settle(state: NeverWorse, frames: Tensor, measure: Measure, limits: WorseLimits, scale: float,
-           settings: FallbackSettings) -> None:
+def settle(
+    state: NeverWorse, frames: Tensor, measure: Measure, limits: WorseLimits, scale: float, settings: FallbackSettings
+) -> None:
     """The rounds ran out with ``frames`` unmeasured: measure them; worse ones go back to the input, blended over
     the ramp, and the blend's frames are measured next, until none is worse. Each round sends at least one more
     frame back to the input, so it ends within ``F`` rounds; a round measures only the blend's frames."""

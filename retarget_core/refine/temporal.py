@@ -43,7 +43,7 @@ def smoothstep(x: Tensor) -> Tensor:
 def fallback_weights(cap: Tensor, ramp: int) -> Tensor:
     """``(F,)`` weights in 0..1 that are at most ``cap (F,)`` on every frame and rise smoothly back to 1 over
     ``ramp`` frames around the capped ones: ``w(t) = min_u c_u + (1 - c_u) * smoothstep(|t - u| / ramp)`` over the
-    caps ``c`` closed first (a gap under ``ramp`` frames between two capped spans takes their higher cap), so a
+    caps ``c`` closed first (a gap of at most ``ramp`` frames between two capped spans takes their higher cap), so a
     span where a change made things worse returns smoothly towards the input, without blips between spans."""
     f_n = cap.shape[0]
     closed = close_caps(cap.float(), ramp)
@@ -57,7 +57,7 @@ def fallback_weights(cap: Tensor, ramp: int) -> Tensor:
 
 
 def close_caps(cap: Tensor, ramp: int) -> Tensor:
-    """``(F,)`` caps lowered in the gaps under ``ramp`` frames between capped spans (a grey closing of the
+    """``(F,)`` caps lowered in the gaps of at most ``ramp`` frames between capped spans (a grey closing of the
     withdrawn share ``1 - cap``: dilation then erosion over ``ramp // 2`` frames each side); never above ``cap``."""
     half = max(ramp // 2, 0)
     if half == 0:
