@@ -76,18 +76,18 @@ class NeverWorse:
         still above zero (to measure again)."""
         scaled = self.weight[bad] * s.factor
         self.cap[bad] = torch.where(scaled < s.floor, torch.zeros_like(scaled), scaled)
-        new_w = torch.minimum(self.weight, fallback_weights(self.cap, s.ramp))
-        changed = torch.nonzero(new_w < self.weight - 1e-6).flatten()
-        self.weight = new_w
-        self.restore(changed[new_w[changed] == 0])
-        return changed[new_w[changed] > 0]
+        return self._blend_to_caps(s.ramp)
 
     def give_up(self, frames: Tensor, ramp: int) -> Tensor:
         """The change on ``frames`` goes back to the input, blended over ``ramp`` frames like a fallback (no step
         where a kept change meets a withdrawn one); the frames around them whose weight fell (to measure again)."""
         self.cap[frames] = 0.0
+        return self._blend_to_caps(ramp)
+
+    def _blend_to_caps(self, ramp: int) -> Tensor:
+        """Weights lowered to the blend of :attr:`cap` (at most the cap on every frame, so 0 where it is 0); frames
+        back at the input read its figures. The frames whose weight fell and is still above zero."""
         new_w = torch.minimum(self.weight, fallback_weights(self.cap, ramp))
-        new_w[frames] = 0.0
         lowered = torch.nonzero(new_w < self.weight - 1e-6).flatten()
         self.weight = new_w
         self.restore(lowered[new_w[lowered] == 0])
