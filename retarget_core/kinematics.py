@@ -8,6 +8,7 @@ Follows the glTF definition: a joint's world transform is its parent's world tra
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import torch
 from torch import Tensor
@@ -19,22 +20,33 @@ def forward_kinematics(
     parents: Sequence[int], local_rotations: Tensor, local_translations: Tensor
 ) -> tuple[Tensor, Tensor]:
     """World rotations ``(..., J, 4)`` and positions ``(..., J, 3)`` from local rotations ``(..., J, 4)`` and
-    local translations ``(..., J, 3)`` (roots: world). ``parents[j] < j``; ``-1`` marks a root."""
+    local translations ``(..., J, 3)`` (roots: world). ``parents[j] < j``; ``-1`` marks a root.
+
+    One step per depth of the hierarchy (all joints of a depth at once), not per joint: the same products on
+    the same values as joint after joint, so bit-identical, and differentiable."""
     batch = torch.broadcast_shapes(local_rotations.shape[:-2], local_translations.shape[:-2])
     local_rotations = local_rotations.expand(*batch, *local_rotations.shape[-2:])
     local_translations = local_translations.expand(*batch, *local_translations.shape[-2:])
-    grot: list[Tensor] = []
-    gpos: list[Tensor] = []
-    for j, p in enumerate(parents):
-        r = local_rotations[..., j, :]
-        t = local_translations[..., j, :]
-        if p < 0:
-            grot.append(r)
-            gpos.append(t)
-        else:
-            grot.append(rot.mul(grot[p], r))
-            gpos.append(gpos[p] + rot.apply(grot[p], t))
-    return torch.stack(grot, dim=-2), torch.stack(gpos, dim=-2)
+    grot, gpos = local_rotations.clone(), local_translations.clone()  # roots are their own world transform
+    for joints, joint_parents in depth_levels(tuple(int(p) for p in parents), local_rotations.device):
+        parent_rot = grot.index_select(-2, joint_parents)
+        moved = gpos.index_select(-2, joint_parents) + rot.apply(parent_rot, local_translations.index_select(-2, joints))
+        grot = grot.index_copy(-2, joints, rot.mul(parent_rot, local_rotations.index_select(-2, joints)))
+        gpos = gpos.index_copy(-2, joints, moved)
+    return grot, gpos
+
+
+@lru_cache(maxsize=256)
+def depth_levels(parents: tuple[int, ...], device: torch.device) -> tuple[tuple[Tensor, Tensor], ...]:
+    """Per depth below the roots: the joints ``(n,)`` at that depth and their parents ``(n,)``."""
+    depth: list[int] = []
+    for p in parents:
+        depth.append(0 if p < 0 else depth[p] + 1)
+    levels = []
+    for d in range(1, max(depth, default=0) + 1):
+        joints = [j for j, dj in enumerate(depth) if dj == d]
+        levels.append((torch.tensor(joints, device=device), torch.tensor([parents[j] for j in joints], device=device)))
+    return tuple(levels)
 
 
 def global_to_local(

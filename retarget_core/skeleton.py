@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import torch
 from torch import Tensor
 
 from retarget_core import kinematics
@@ -24,6 +25,7 @@ class Skeleton:
     rest_translations: Tensor
     rest_rotations: Tensor
     _index: dict[str, int] = field(init=False, repr=False, compare=False)
+    _rest_cache: dict[tuple[int, ...], tuple[Tensor, Tensor]] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if len(set(self.names)) != len(self.names):
@@ -34,6 +36,7 @@ class Skeleton:
             if p >= j:
                 raise ValueError(f"joint {self.names[j]!r} comes before its parent")
         object.__setattr__(self, "_index", {n: i for i, n in enumerate(self.names)})
+        object.__setattr__(self, "_rest_cache", {})
 
     @property
     def num_joints(self) -> int:
@@ -61,8 +64,18 @@ class Skeleton:
         return out
 
     def rest_global(self) -> tuple[Tensor, Tensor]:
-        """World rotations ``(J, 4)`` and positions ``(J, 3)`` of the rest pose."""
-        return kinematics.forward_kinematics(self.parents, self.rest_rotations, self.rest_translations)
+        """World rotations ``(J, 4)`` and positions ``(J, 3)`` of the rest pose (computed once per rest pose:
+        callers get their own copies)."""
+        r, t = self.rest_rotations, self.rest_translations
+        if r.requires_grad or t.requires_grad:  # a rest pose being optimised: differentiable, not cached
+            return kinematics.forward_kinematics(self.parents, r, t)
+        key = (id(r), r._version, id(t), t._version)  # a rest tensor changed in place is computed again
+        if key not in self._rest_cache:
+            self._rest_cache.clear()
+            with torch.no_grad():
+                self._rest_cache[key] = kinematics.forward_kinematics(self.parents, r.detach(), t.detach())
+        grot, gpos = self._rest_cache[key]
+        return grot.clone(), gpos.clone()
 
     def subset(self, keep: list[int]) -> Skeleton:
         """A skeleton of the joints ``keep`` (sorted, parent-closed after re-parenting to the nearest kept

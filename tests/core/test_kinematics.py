@@ -120,3 +120,47 @@ def test_posing_a_vertex_subset_matches_posing_the_whole_mesh() -> None:
     index = torch.tensor([0, 17, ch.num_vertices // 2, ch.num_vertices - 1])
     whole = ch.pose_vertices(grot, gpos)[:, index]
     assert torch.allclose(ch.pose_vertex_subset(index, grot, gpos, chunk=2), whole, atol=1e-5)
+
+
+def _joint_by_joint(parents: list[int], local_rotations: torch.Tensor, local_translations: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """The glTF recursion written out joint after joint (the reference the level-wise FK must equal)."""
+    grot: list[torch.Tensor] = []
+    gpos: list[torch.Tensor] = []
+    for j, p in enumerate(parents):
+        r, t = local_rotations[..., j, :], local_translations[..., j, :]
+        grot.append(r if p < 0 else rot.mul(grot[p], r))
+        gpos.append(t if p < 0 else gpos[p] + rot.apply(grot[p], t))
+    return torch.stack(grot, -2), torch.stack(gpos, -2)
+
+
+def test_fk_by_depth_equals_joint_by_joint() -> None:
+    """Two roots, branches of different depths, a parent listed long before its children: equal bit for bit,
+    with broadcast batch shapes, and the same gradients up to float rounding."""
+    parents = [-1, 0, 1, 0, 3, 4, -1, 6, 2, 8, 5, 1]
+    gen = torch.Generator().manual_seed(3)
+    q = rot.normalize(torch.randn(2, 5, len(parents), 4, generator=gen, dtype=torch.float64))
+    t = torch.randn(5, len(parents), 3, generator=gen, dtype=torch.float64)
+    want = _joint_by_joint(parents, q, t.expand(2, -1, -1, -1))
+    got = kinematics.forward_kinematics(parents, q, t)
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    qa, qb = q.clone().requires_grad_(), q.clone().requires_grad_()
+    w = torch.randn(2, 5, len(parents), 3, generator=gen, dtype=torch.float64)
+    (_joint_by_joint(parents, qa, t.expand(2, -1, -1, -1))[1] * w).sum().backward()
+    (kinematics.forward_kinematics(parents, qb, t)[1] * w).sum().backward()
+    assert torch.allclose(qa.grad, qb.grad, rtol=1e-12, atol=1e-12)
+
+
+def test_rest_pose_is_computed_once_and_handed_out_as_copies() -> None:
+    from retarget_core.skeleton import Skeleton
+
+    gen = torch.Generator().manual_seed(4)
+    sk = Skeleton(["a", "b", "c"], [-1, 0, 1], torch.randn(3, 3, generator=gen),
+                  rot.normalize(torch.randn(3, 4, generator=gen)))  # fmt: skip
+    grot, gpos = sk.rest_global()
+    assert torch.equal(gpos, kinematics.forward_kinematics(sk.parents, sk.rest_rotations, sk.rest_translations)[1])
+    first = gpos.clone()
+    gpos += 1.0  # a caller's copy: the next call is unaffected
+    assert torch.equal(sk.rest_global()[1], first)
+    sk.rest_translations[2] += 0.5  # the rest pose changed in place: computed again
+    assert torch.allclose(sk.rest_global()[1][2], first[2] + rot.apply(grot[1], torch.tensor([0.5, 0.5, 0.5])))
