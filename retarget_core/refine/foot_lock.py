@@ -399,7 +399,23 @@ def floor_lift(leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_tra
     under[idx] = (-(plan.target[idx, 1] + low)).clamp_min(0.0)
     if not bool((under > 0).any()):
         return under
-    return torch.where(plan.inside, torch.zeros_like(under), _dilate_smooth(under, blend))
+    # The spread lift fades in over the blend away from each plant (0 inside): spreading a later depth back to
+    # the plant's edge would raise the foot in one frame there. Never below the depth itself, which starts
+    # near 0 at the edge (the ramp leaves from the lock).
+    taper = smoothstep(_frames_from(plan.inside).to(drop.dtype) / (blend + 1))
+    lift = torch.maximum(under, taper * _dilate_smooth(under, blend))
+    return torch.where(plan.inside, torch.zeros_like(lift), lift)
+
+
+def _frames_from(inside: Tensor) -> Tensor:
+    """``(F,)`` frames from each frame to the nearest frame of ``inside (F,)`` (0 there; large when none)."""
+    at = torch.nonzero(inside).flatten()
+    frames = torch.arange(inside.shape[0])
+    if at.numel() == 0:
+        return torch.full_like(frames, inside.shape[0] + 1)
+    nearest = torch.searchsorted(at, frames).clamp(max=at.numel() - 1)
+    before = at[(nearest - 1).clamp_min(0)]
+    return torch.minimum((at[nearest] - frames).abs(), (frames - before).abs())
 
 
 def subtree(parents: list[int], joint: int) -> list[int]:

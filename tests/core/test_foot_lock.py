@@ -209,3 +209,24 @@ def test_lock_does_not_lower_foot_accuracy_on_a_walk(harness: Harness, locked: f
     before = feet_figures(ctx.target, ctx.target_mapping, ctx.before, ctx.planted)
     after = feet_figures(ctx.target, ctx.target_mapping, locked.motion, ctx.planted)
     assert after.foot_accuracy >= before.foot_accuracy, (before.as_dict(), after.as_dict())
+
+
+def test_floor_lift_rises_from_the_plant_edge_without_a_step() -> None:
+    """A foot that leaves a plant and sinks 1 cm a frame into the floor: the lift is 0 in the plant, never below
+    the depth, and rises at most twice as fast as the depth (spreading the later depth back to the plant's edge
+    raised the foot 3-4 cm in one frame there: the knee jerk of issue 22 item 4)."""
+    frames, blend = 30, 4
+    leg = foot_lock.Leg("Left", 0, 1, 2, -1, 0, 1)
+    model = foot_lock.FootModel(torch.tensor([[0.0, -0.1, 0.0]]), torch.zeros(1, dtype=torch.bool))
+    f = torch.arange(frames)
+    inside = (f >= 5) & (f <= 12)
+    sink = (0.01 * (f - 12)).clamp(0.0, 0.06)  # 0 in and before the plant, then 1 cm a frame down to 6 cm
+    target = torch.zeros(frames, 3)
+    target[:, 1] = 0.1 - sink  # the ankle 10 cm above its foot's sole
+    plan = foot_lock.LegPlan(target, rot.identity(frames), None, (f >= 1) & (f <= 20), inside)
+    drop = torch.zeros(frames)
+    lift = foot_lock.floor_lift(leg, plan, model, drop, torch.zeros(3, 3), blend)
+    solved = plan.driven & ~inside
+    assert bool((lift[inside] == 0).all())
+    assert bool((lift[solved] >= sink[solved] - 1e-7).all())
+    assert float(lift.diff().abs().max()) <= 2.0 * float(sink.diff().abs().max())  # before: 4.7 cm in one frame
