@@ -46,6 +46,7 @@ from retarget_core.context import RefineContext, StageOutcome
 from retarget_core.energy.sdf import effective_depth, sample_pairs, segment_matrices
 from retarget_core.metrics.feet_acceptance import foot_vertices_of
 from retarget_core.motion import Motion
+from retarget_core.refine.temporal import smoothstep
 from retarget_core.refine.two_bone_ik import two_bone_ik
 
 REFERENCE_HEIGHT_M = 1.80
@@ -156,11 +157,6 @@ def make_plants(spans: list[tuple[int, int]], frames: int, blend: int) -> list[P
         ramp_out = min(blend, gap_after if k + 1 == len(spans) else gap_after // 2)
         out.append(Plant(a, b, max(0, ramp_in), max(0, ramp_out)))
     return out
-
-
-def smoothstep(x: Tensor) -> Tensor:
-    x = x.clamp(0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
 
 
 def _segment_mean_rotation(q: Tensor, seg: Tensor, count: int) -> Tensor:
