@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 from retarget_core import kinematics
@@ -49,6 +50,12 @@ class Motion:
     def global_transforms(self) -> tuple[Tensor, Tensor]:
         """World rotations ``(F, J, 4)`` and positions ``(F, J, 3)`` of every frame."""
         return kinematics.forward_kinematics(self.skeleton.parents, self.rotations, self.translations)
+
+    def to(self, device: torch.device) -> Motion:
+        """The same motion with its tensors on ``device`` (itself when already there)."""
+        if self.rotations.device == device and self.translations.device == device:
+            return self
+        return Motion(self.skeleton, self.fps, self.rotations.to(device), self.translations.to(device), self.name)
 
     def slice(self, start: int = 0, stop: int | None = None) -> Motion:
         """Frames ``start:stop`` as a new motion."""

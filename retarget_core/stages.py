@@ -40,11 +40,13 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("learned_collisions", "Learned collision resolver", "paper 2's per-limb network turns limbs out of the body",
               "retarget_core.refine.collision_model", 0.05, default=False),
     StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept",
-              "retarget_core.refine.collisions", 0.2),
+              "retarget_core.refine.collisions", 0.17),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
               "retarget_core.refine.foot_lock", 0.03),
     StageInfo("floor", "Floor", "the body lifted, with least jerk, where it sinks below the floor",
               "retarget_core.refine.floor", 0.01),
+    StageInfo("hand_contacts", "Hand contacts", "hands onto the parts they touch in the source, clear of the others",
+              "retarget_core.refine.hand_contacts", 0.05),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
               "retarget_core.refine.fingers", 0.01),
 )  # fmt: skip
@@ -56,7 +58,7 @@ PREPARE_STEPS: dict[str, float] = {"read": 0.08, "copy": 0.04, "body": 0.06}
 PREPARE_ORDER: tuple[str, ...] = ("read", "copy", "contacts", "body")
 """What :func:`retarget_core.pipeline.prepare` runs, in order (``contacts`` is a switchable stage)."""
 
-FINISH_STEPS: dict[str, float] = {"metrics": 0.21, "write": 0.09}
+FINISH_STEPS: dict[str, float] = {"metrics": 0.19, "write": 0.09}
 """The fixed steps after the refinement stages, with their share of a job's time."""
 
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

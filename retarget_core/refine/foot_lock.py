@@ -539,8 +539,8 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
     params = params or FootLockParams()
     device = motion.rotations.device
     if device.type != "cpu":
-        outcome = run(ctx, _on(motion, torch.device("cpu")), params)
-        return StageOutcome(_on(outcome.motion, device), outcome.report)
+        outcome = run(ctx, motion.to(torch.device("cpu")), params)
+        return StageOutcome(outcome.motion.to(device), outcome.report)
     t0 = time.perf_counter()
     character = ctx.target
     sk = motion.skeleton
@@ -595,10 +595,6 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
         int((drop > 1e-5).sum()), float(drop.max()) * to_cm, pen_before, pen_after, lock_seconds, check_seconds,
     )  # fmt: skip
     return StageOutcome(out, report)
-
-
-def _on(motion: Motion, device: torch.device) -> Motion:
-    return Motion(motion.skeleton, motion.fps, motion.rotations.to(device), motion.translations.to(device), motion.name)
 
 
 def _idle_plan(leg: Leg, grot: Tensor, gpos: Tensor, local_rot: Tensor) -> LegPlan:

@@ -1,0 +1,259 @@
+"""Each hand's nearest approach to the judge's body parts on posed frames, with the two points that make it: what
+the hand contact stage (:mod:`retarget_core.refine.hand_contacts`) moves hands by.
+
+The parts are the judge's (:mod:`retarget_core.metrics.acceptance_body`: closed parts of the body meshes, by
+dominant joint), searched through one triangle tree per part refit to every frame
+(:mod:`retarget_core.geometry.triangle_bvh`). A hand is sampled one vertex per ``cell_m`` cell of its rest pose
+(1 cm: the distance is within a few millimetres of the judge's, which reads every hand vertex); a sampled vertex
+inside the part makes the distance 0. Lengths in metres on the body's own scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from retarget_core import kinematics
+from retarget_core.canonical import JointMapping
+from retarget_core.character import Character
+from retarget_core.geometry.closest_point import closest_points
+from retarget_core.geometry.triangle_bvh import (
+    PosedBoxes,
+    TriangleBVH,
+    build_bvh,
+    closest_triangles,
+    refit,
+    winding_numbers,
+)
+from retarget_core.metrics.acceptance_body import (
+    HANDS,
+    LIMB_TESTS,
+    PARTS,
+    AcceptanceBody,
+    ClosedPart,
+    acceptance_body,
+)
+from retarget_core.motion import Motion
+
+HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
+COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
+ARM_CELL_M = 0.02  # one sampled arm vertex per cell of this size (the hands: HAND_CELL_M): the arms' penetration check
+INSIDE_CHECK_M = 0.03  # sampled points this close to a part are tested for inside (deeper ones: a hand in a part)
+
+
+@dataclass
+class ReachBody:
+    """Per body: the judge's parts, each hand's sampled vertices ``hand_points[h] (K,)`` (in :data:`HANDS`
+    order) and each part's tree over its closed mesh (rest pose)."""
+
+    body: AcceptanceBody
+    hand_points: tuple[np.ndarray, ...]
+    coarse_hand_points: tuple[np.ndarray, ...]  # the same at COARSE_HAND_CELL_M: where only "within 2 cm?" is asked
+    arm_points: tuple[np.ndarray, ...]  # per arm (left, right): sampled counted vertices (outside the seam band)
+    arm_area: tuple[Tensor, ...]  # per arm ``(K,)``: the surface each sampled vertex stands for (its cell's face)
+    trees: dict[str, TriangleBVH]
+    scale: float  # body lengths per length at 1.80 m
+
+    def read_vertices(self) -> np.ndarray:
+        """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's."""
+        own = [part.vertices for part in self.body.parts if part is not None]
+        hands = [*self.hand_points, *self.coarse_hand_points]
+        return np.unique(np.concatenate([*hands, *self.arm_points, *own]).astype(np.int64))
+
+
+def one_per_cell(rest: np.ndarray, idx: np.ndarray, cell: float) -> np.ndarray:
+    """The first of ``idx (N,)`` in each ``cell``-sized voxel of the rest positions ``rest (V, 3)``, sorted."""
+    key = np.floor(rest[idx] / cell).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return np.sort(idx[first])
+
+
+def reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND_CELL_M) -> ReachBody:
+    """The judge's body of ``character`` with sampled hands and arms and part trees."""
+    body = acceptance_body(character, mapping)
+    rest = character.vertices.detach().double().numpy()
+    scale = character.height / 1.80
+    hand_idx = [np.asarray(body.hand_vertices[h], dtype=np.int64) for h in HANDS]
+    hands = tuple(one_per_cell(rest, idx, cell_m * scale) for idx in hand_idx)
+    coarse = tuple(one_per_cell(rest, idx, COARSE_HAND_CELL_M * scale) for idx in hand_idx)
+    arms, areas = [], []
+    for h, hand_pts in zip(HANDS, hands, strict=True):
+        counted = (body.part_of_vertex == PARTS.index(f"{h}_arm")) & ~body.seam
+        counted[body.hand_vertices[h]] = False
+        rest_of_arm = one_per_cell(rest, np.nonzero(counted)[0], ARM_CELL_M * scale)
+        hand_counted = hand_pts[~body.seam[hand_pts]]
+        arms.append(np.concatenate([rest_of_arm, hand_counted]))
+        areas.append(torch.cat([torch.full((len(rest_of_arm),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64),
+                                torch.full((len(hand_counted),), (cell_m * scale) ** 2, dtype=torch.float64)]))  # fmt: skip
+    trees = {name: build_bvh(part.posed(rest), part.faces) for name, part in zip(PARTS, body.parts, strict=True)
+             if part is not None}  # fmt: skip
+    return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), trees, scale)
+
+
+@dataclass
+class Reach:
+    """Per query ``(Q,)``: the hand's distance to the part (0 when a sampled point is inside, ``inf`` beyond the
+    search bound) and ``(Q, 3)`` the hand point and the surface point of that distance (NaN where ``inf``)."""
+
+    distance: Tensor
+    hand_point: Tensor
+    surface_point: Tensor
+
+
+class PosedParts:
+    """The parts of one chunk of posed frames ``posed (n, V, 3)``: each part's posed closed mesh and its refit tree
+    boxes, made the first time a part is asked for."""
+
+    def __init__(self, rb: ReachBody, posed: Tensor) -> None:
+        self.rb, self.posed = rb, posed.double()
+        self._done: dict[str, tuple[Tensor, PosedBoxes]] = {}
+
+    def get(self, name: str) -> tuple[Tensor, PosedBoxes] | None:
+        """``(local (n, N + L, 3), boxes)`` of part ``name`` (None when the body has no such part)."""
+        closed = self.rb.body.part(name)
+        if closed is None:
+            return None
+        if name not in self._done:
+            local = torch.from_numpy(closed.posed(self.posed.numpy()))
+            self._done[name] = (local, refit(self.rb.trees[name], local))
+        return self._done[name]
+
+
+def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,
+               coarse: bool = False) -> Reach:  # fmt: skip
+    """The :class:`Reach` of queries (``frame (Q,)`` into ``posed (n, V, 3)``, ``hand (Q,)`` into :data:`HANDS`,
+    ``part (Q,)`` into :data:`PARTS`), each searched up to its ``bound (Q,)``, from the hands' sampled points
+    (``coarse``: the coarse ones). Queries whose hand's box lies farther than the bound from the part's box are
+    not searched; each part's tree is refit on the frames queried."""
+    points = rb.coarse_hand_points if coarse else rb.hand_points
+    out = _empty_reach(len(frame))
+    posed = posed.double()
+    hand_lo = torch.stack([posed[:, torch.from_numpy(p)].amin(dim=1) for p in rb.hand_points], dim=1)  # (n, 2, 3)
+    hand_hi = torch.stack([posed[:, torch.from_numpy(p)].amax(dim=1) for p in rb.hand_points], dim=1)
+    for p_i in torch.unique(part).tolist():
+        closed = rb.body.part(PARTS[p_i])
+        if closed is None:
+            continue
+        at = posed[:, torch.from_numpy(closed.vertices)]
+        lo, hi = at.amin(dim=1), at.amax(dim=1)  # (n, 3) the part's box (cap centres lie within it)
+        sel = torch.nonzero(part == p_i).flatten()
+        f, h = frame[sel], hand[sel]
+        gap = (torch.maximum(lo[f] - hand_hi[f, h], hand_lo[f, h] - hi[f]).clamp_min(0.0)).norm(dim=-1)
+        sel = sel[gap <= bound[sel]]
+        if len(sel):
+            _part_reach(rb, closed, PARTS[p_i], posed, sel, frame, hand, bound, points, out)
+    return out
+
+
+def _part_reach(rb: ReachBody, closed: ClosedPart, name: str, posed: Tensor, sel: Tensor, frame: Tensor,
+                hand: Tensor, bound: Tensor, points: tuple[np.ndarray, ...], out: Reach) -> None:  # fmt: skip
+    """:func:`hand_reach` of the queries ``sel`` against one part: its tree refit on their frames only."""
+    frames, local_frame = torch.unique(frame[sel], return_inverse=True)
+    local = torch.from_numpy(closed.posed(posed[frames].numpy()))
+    boxes = refit(rb.trees[name], local)
+    fine = points is rb.hand_points
+    for h in range(len(HANDS)):
+        mine = sel[hand[sel] == h]
+        f = local_frame[hand[sel] == h]
+        if len(mine) == 0 or len(points[h]) == 0:
+            continue
+        args = (rb.trees[name], (local, boxes), posed[frames], f)
+        limit = bound[mine]
+        if fine:  # the coarse samples first: the fine search needs only to look nearer than they found
+            coarse = _empty_reach(len(out.distance))
+            _fill(coarse, mine, *args, torch.from_numpy(rb.coarse_hand_points[h]), limit, INSIDE_CHECK_M * rb.scale)
+            limit = torch.minimum(limit, coarse.distance[mine] + 1e-9)
+            _copy_reach(out, coarse, mine)
+        _fill(out, mine, *args, torch.from_numpy(points[h]), limit, INSIDE_CHECK_M * rb.scale)
+
+
+def _empty_reach(q_n: int) -> Reach:
+    """A :class:`Reach` of ``q_n`` queries that found nothing."""
+    return Reach(torch.full((q_n,), float("inf"), dtype=torch.float64),
+                 torch.full((q_n, 3), float("nan"), dtype=torch.float64),
+                 torch.full((q_n, 3), float("nan"), dtype=torch.float64))  # fmt: skip
+
+
+def _copy_reach(out: Reach, other: Reach, rows: Tensor) -> None:
+    """``other``'s entries ``rows`` into ``out``."""
+    out.distance[rows], out.hand_point[rows], out.surface_point[rows] = (
+        other.distance[rows], other.hand_point[rows], other.surface_point[rows])  # fmt: skip
+
+
+def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Per frame of the chunk ``(n,)``: how many sampled vertices of arm ``side`` are inside a part the judge tests
+    it against, the deepest of them and their volume, each depth times its sample's area (deeper than
+    ``max_depth``: counted at it)."""
+    n = pp.posed.shape[0]
+    count, deepest, total = torch.zeros(n), torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
+    pts = torch.from_numpy(pp.rb.arm_points[side])
+    if len(pts) == 0:
+        return count, deepest, total
+    at = pp.posed[:, pts]  # (n, K, 3)
+    for name in LIMB_TESTS[f"{HANDS[side]}_arm"]:
+        got = pp.get(name)
+        if got is None:
+            continue
+        local, boxes = got
+        tree = pp.rb.trees[name]
+        lo, hi = boxes.lo[0][:, 0][:, None], boxes.hi[0][:, 0][:, None]  # each frame's root box
+        f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
+        if len(f) == 0:
+            continue
+        inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
+        f, k = f[inside], k[inside]
+        if len(f) == 0:
+            continue
+        d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
+        d = torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
+        count.index_add_(0, f, torch.ones(len(f)))
+        total.index_add_(0, f, d * pp.rb.arm_area[side][k])
+        deepest = deepest.scatter_reduce(0, f, d, "amax")
+    return count, deepest, total
+
+
+def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, PosedBoxes], posed: Tensor,
+          frame: Tensor, pts: Tensor, max_distance: Tensor, inside_check: float) -> None:  # fmt: skip
+    """:func:`hand_reach` of the queries ``sel`` of one (part, hand): every sampled point searched, the nearest
+    written into ``out`` where one lies within the bound."""
+    local, boxes = posed_part
+    k = len(pts)
+    qf = frame.repeat_interleave(k)
+    qp = posed[frame][:, pts].reshape(-1, 3)
+    d, face = closest_triangles(tree, boxes, qf, qp, max_distance.repeat_interleave(k))
+    check = torch.nonzero(d < inside_check).flatten()
+    if len(check):
+        inside = winding_numbers(tree, boxes, qf[check], qp[check]).abs() > 0.5
+        d[check[inside]] = 0.0
+    d = d.view(len(sel), k)
+    best = d.argmin(dim=1)
+    row = torch.arange(len(sel)) * k + best
+    nearest = d[torch.arange(len(sel)), best]
+    found = torch.isfinite(nearest)  # nothing within the bound: ``out`` keeps what it held
+    if not bool(found.any()):
+        return
+    row, hit = row[found], sel[found]
+    out.distance[hit] = nearest[found]
+    tri = tree.faces[face[row]]
+    corners = [local[qf[row], tri[:, c]] for c in range(3)]
+    out.hand_point[hit] = qp[row]
+    out.surface_point[hit] = closest_points(qp[row], *corners)
+
+
+def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames: Tensor) -> Tensor:
+    """``(n, V, 3)`` the body posed at clip ``frames (n,)``, only the vertices :func:`hand_reach` reads (the
+    others stay zero)."""
+    read = torch.from_numpy(rb.read_vertices())
+    with torch.no_grad():
+        grot, gpos = kinematics.forward_kinematics(motion.skeleton.parents, motion.rotations[frames],
+                                                   motion.translations[frames])  # fmt: skip
+        posed = torch.zeros(len(frames), character.num_vertices, 3)
+        posed[:, read] = character.pose_rows(read, grot, gpos).to(posed.dtype)
+    return posed
+
+
+__all__ = ["HAND_CELL_M", "PosedParts", "Reach", "ReachBody", "arm_penetration", "hand_reach", "one_per_cell",
+           "posed_for_reach", "reach_body"]

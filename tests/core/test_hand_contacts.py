@@ -1,0 +1,157 @@
+"""The hand contact stage on a real body (the skinny sample) with built poses, measured as the judge measures
+(:func:`retarget_core.metrics.acceptance.measure_pose`): a hand that rests on its thigh in the source and is
+lifted 5 cm off it on the target is put back on it; a hand clear of the body in the source that the target
+brings within a centimetre of the torso is moved clear of it; an arm with nothing to keep or avoid keeps its
+rotations bit for bit; the moves' smoothing in time follows the wanted moves where they are defined and never overshoots them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+from retarget_core.body_parts import body_parts
+from retarget_core.canonical import JointMapping
+from retarget_core.character import Character
+from retarget_core.contacts.correspondence import no_contacts
+from retarget_core.contacts.foot_contact import FootContacts
+from retarget_core.contacts.hand_reach import ReachBody, hand_reach, posed_for_reach, reach_body
+from retarget_core.contacts.self_contact import SelfContacts
+from retarget_core.context import RefineContext
+from retarget_core.loading import load_character
+from retarget_core.metrics.acceptance import measure_pose
+from retarget_core.metrics.acceptance_body import CONTACT_PARTS, PARTS
+from retarget_core.motion import Motion
+from retarget_core.refine import hand_contacts
+from retarget_core.refine.hand_contacts import apply_moves, arms_of, weighted_smooth
+from retarget_core.refine.temporal import smoothstep
+
+FRAMES = 40
+LEFT, RIGHT = 0, 1
+
+
+@pytest.fixture(scope="module")
+def skinny(samples: Path) -> tuple[Character, JointMapping, ReachBody]:
+    loaded = load_character(samples / "characters" / "mh_female_skinny.glb")
+    return loaded.character, loaded.mapping, reach_body(loaded.character, loaded.mapping)
+
+
+def _rest(ch: Character) -> Motion:
+    sk = ch.skeleton
+    return Motion(sk, 30.0, sk.rest_rotations.expand(FRAMES, -1, -1).clone(),
+                  sk.rest_translations.expand(FRAMES, -1, -1).clone(), "rest")  # fmt: skip
+
+
+def _hanging(ch: Character, mapping: JointMapping, rb: ReachBody) -> Motion:
+    """The rest pose with the left wrist 7 cm outside the left thigh's outer side at half the body's height."""
+    rest = _rest(ch)
+    _, gpos = rest.global_transforms()
+    wrist = gpos[0, mapping.joints["LeftHand"]].double()
+    v = ch.vertices.double()
+    leg = torch.from_numpy(np.nonzero(rb.body.part_of_vertex == PARTS.index("left_leg"))[0])
+    level = leg[(v[leg, 1] - 0.5 * ch.height).abs() < 0.02]
+    side = torch.sign(wrist[0])
+    outer = v[level[(v[level, 0] * side).argmax()]]
+    moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
+    moves[:, LEFT] = outer + torch.tensor([float(side) * 0.07, 0.0, 0.0], dtype=torch.float64) - wrist
+    return apply_moves(rest, arms_of_mapping(mapping), moves, 0.995)
+
+
+def _placed(ch: Character, mapping: JointMapping, rb: ReachBody, motion: Motion, side: int, part: str,
+            clearance: float) -> Motion:  # fmt: skip
+    """``motion`` with hand ``side``'s wrist moved so the hand's nearest sampled point lies ``clearance`` (m) from
+    ``part`` on every frame (read on frame 0: the motion holds one pose)."""
+    posed = posed_for_reach(rb, ch, motion, torch.tensor([0]))
+    r = hand_reach(rb, posed, torch.tensor([0]), torch.tensor([side]), torch.tensor([PARTS.index(part)]),
+                   torch.tensor([1.0]))  # fmt: skip
+    gap = (r.surface_point - r.hand_point)[0]
+    move = gap * (1.0 - clearance / float(r.distance[0]))
+    moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
+    moves[:, side] = move
+    return apply_moves(motion, arms_of_mapping(mapping), moves, 0.995)
+
+
+def arms_of_mapping(mapping: JointMapping) -> list[hand_contacts.Arm]:
+    class _Ctx:  # arms_of reads only the mapping
+        target_mapping = mapping
+
+    return arms_of(_Ctx())  # type: ignore[arg-type]
+
+
+def _context(ch: Character, mapping: JointMapping, source: Motion, target: Motion) -> RefineContext:
+    e = torch.zeros(0, dtype=torch.long)
+    parts = body_parts(ch, mapping)
+    contacts = SelfContacts(FRAMES, parts.names, e, e, e, torch.zeros(0, 3, 2, dtype=torch.long), torch.zeros(0, 3),
+                            torch.zeros(0, dtype=torch.bool), torch.zeros(0))  # fmt: skip
+    return RefineContext(
+        target=ch, target_mapping=mapping, parts=parts, sdf=None, source_body=ch,  # type: ignore[arg-type]
+        source_mapping=mapping, source_view=source, self_contacts=contacts, constraints=no_contacts(FRAMES),
+        feet=FootContacts(torch.zeros(FRAMES, 4, dtype=torch.bool), [-1] * 4), before=target,
+    )  # fmt: skip
+
+
+def _judged(ch: Character, mapping: JointMapping, motion: Motion, frames: list[int]) -> np.ndarray:
+    """``(n, 2, 4)`` the judge's hand distances (m) at ``frames``."""
+    grot, gpos = motion.global_transforms()
+    with torch.no_grad():
+        posed = ch.pose_vertices(grot[frames], gpos[frames]).double().numpy()
+    return np.stack([measure_pose(ch, mapping, p).hand_distance for p in posed])
+
+
+def _lifted(motion: Motion, mapping: JointMapping, side: int, offset: Tensor) -> Motion:
+    """``motion`` with hand ``side`` moved by ``offset (3,)`` on frames 10-29, eased in over 5-10 and out over
+    29-34 (the frames before 5 and after 34 unchanged)."""
+    t = torch.arange(FRAMES, dtype=torch.float64)
+    ease = torch.minimum(smoothstep((t - 5.0) / 5.0), smoothstep((34.0 - t) / 5.0))
+    moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
+    moves[:, side] = ease[:, None] * offset
+    return apply_moves(motion, arms_of_mapping(mapping), moves, 0.995)
+
+
+def test_a_hand_lifted_off_its_thigh_is_put_back_and_an_idle_arm_is_untouched(skinny) -> None:  # type: ignore[no-untyped-def]
+    ch, mapping, rb = skinny
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    legs = CONTACT_PARTS.index("legs")
+    assert _judged(ch, mapping, source, [0])[0, LEFT, legs] < 0.015  # the source touches
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    outward = torch.tensor([side * 0.05, 0.0, 0.0], dtype=torch.float64)  # away from the body
+    target = _lifted(source, mapping, LEFT, outward)
+    lifted = _judged(ch, mapping, target, list(range(10, 30, 4)))
+    assert (lifted[:, LEFT, legs] > 0.025).all()  # lost, as the judge reads it
+    out = hand_contacts.run(_context(ch, mapping, source, target), target)
+    back = _judged(ch, mapping, out.motion, list(range(12, 28, 2)))
+    assert (back[:, LEFT, legs] < 0.025).all()  # kept (the span's first frames are eased in by the smoothing)
+    edge = _judged(ch, mapping, out.motion, [10])
+    assert edge[0, LEFT, legs] < lifted[0, LEFT, legs] - 0.02
+    assert out.report["contacts_after"]["preservation"] > out.report["contacts_before"]["preservation"]
+    right = [mapping.joints[n] for n in ("RightArm", "RightForeArm", "RightHand")]
+    assert torch.equal(out.motion.rotations[:, right], target.rotations[:, right])
+
+
+def test_a_hand_clear_in_the_source_is_moved_clear_of_the_torso(skinny) -> None:  # type: ignore[no-untyped-def]
+    ch, mapping, rb = skinny
+    source = _rest(ch)
+    torso = CONTACT_PARTS.index("torso")
+    assert _judged(ch, mapping, source, [0])[0, RIGHT, torso] > 0.05  # clear of the torso in the source
+    target = _placed(ch, mapping, rb, source, RIGHT, "torso", 0.004)
+    assert _judged(ch, mapping, target, [0])[0, RIGHT, torso] < 0.01  # a false contact as the judge reads it
+    out = hand_contacts.run(_context(ch, mapping, source, target), target)
+    after = _judged(ch, mapping, out.motion, list(range(0, FRAMES, 5)))
+    assert (after[:, RIGHT, torso] >= 0.01).all()
+    assert out.report["contacts_after"]["false_contacts"] < out.report["contacts_before"]["false_contacts"]
+
+
+def test_the_moves_smoothing_follows_defined_frames_and_never_overshoots() -> None:
+    wanted = torch.zeros(90, 1, dtype=torch.float64)
+    wanted[30:60] = 1.0
+    weight = torch.full((90,), 0.1, dtype=torch.float64)
+    weight[30:60] = 1.0
+    fit = weighted_smooth(wanted, weight, 3.0)[:, 0]
+    assert float((fit[36:54] - 1.0).abs().max()) < 0.02  # follows inside the span
+    assert float(fit[:15].abs().max()) < 0.01 and float(fit[75:].abs().max()) < 0.01  # nothing far from it
+    assert float(fit.min()) >= 0.0 and float(fit.max()) <= 1.0  # a weighted mean: no ringing
+    jerk = (fit[3:] - 3 * fit[2:-1] + 3 * fit[1:-2] - fit[:-3]).abs().max()
+    assert float(jerk) < 0.1  # the wanted curve's own third difference at its steps: 1
