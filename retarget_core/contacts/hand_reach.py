@@ -19,6 +19,7 @@ from torch import Tensor
 from retarget_core import kinematics
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
+from retarget_core.energy.sdf import vertex_areas
 from retarget_core.geometry.closest_point import closest_points
 from retarget_core.geometry.triangle_bvh import (
     PosedBoxes,
@@ -40,7 +41,7 @@ from retarget_core.motion import Motion
 
 HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
 COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
-ARM_CELL_M = 0.02  # one sampled arm vertex per cell of this size (the hands: HAND_CELL_M): the arms' penetration check
+ARM_CELL_M = 0.02  # the arms' penetration check: one arm vertex per cell of this size, and every hand vertex
 INSIDE_CHECK_M = 0.03  # sampled points this close to a part are tested for inside (deeper ones: a hand in a part)
 
 
@@ -52,8 +53,9 @@ class ReachBody:
     body: AcceptanceBody
     hand_points: tuple[np.ndarray, ...]
     coarse_hand_points: tuple[np.ndarray, ...]  # the same at COARSE_HAND_CELL_M: where only "within 2 cm?" is asked
-    arm_points: tuple[np.ndarray, ...]  # per arm (left, right): sampled counted vertices (outside the seam band)
-    arm_area: tuple[Tensor, ...]  # per arm ``(K,)``: the surface each sampled vertex stands for (its cell's face)
+    arm_points: tuple[np.ndarray, ...]  # per arm (left, right): its counted vertices (outside the seam band) tested
+    # for penetration: one per ARM_CELL_M cell, and every hand vertex
+    arm_area: tuple[Tensor, ...]  # per arm ``(K,)``: the surface each stands for (a cell's face; a hand vertex's own)
     trees: dict[str, TriangleBVH]
     scale: float  # body lengths per length at 1.80 m
 
@@ -79,15 +81,17 @@ def reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND
     hand_idx = [np.asarray(body.hand_vertices[h], dtype=np.int64) for h in HANDS]
     hands = tuple(one_per_cell(rest, idx, cell_m * scale) for idx in hand_idx)
     coarse = tuple(one_per_cell(rest, idx, COARSE_HAND_CELL_M * scale) for idx in hand_idx)
+    vertex_area = vertex_areas(character.vertices.detach().double(), character.faces).double()
     arms, areas = [], []
-    for h, hand_pts in zip(HANDS, hands, strict=True):
+    for h in HANDS:
         counted = (body.part_of_vertex == PARTS.index(f"{h}_arm")) & ~body.seam
         counted[body.hand_vertices[h]] = False
         rest_of_arm = one_per_cell(rest, np.nonzero(counted)[0], ARM_CELL_M * scale)
-        hand_counted = hand_pts[~body.seam[hand_pts]]
+        hand_all = np.asarray(body.hand_vertices[h], dtype=np.int64)
+        hand_counted = hand_all[~body.seam[hand_all]]  # every hand vertex: the hand is what the stage brings near
         arms.append(np.concatenate([rest_of_arm, hand_counted]))
         areas.append(torch.cat([torch.full((len(rest_of_arm),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64),
-                                torch.full((len(hand_counted),), (cell_m * scale) ** 2, dtype=torch.float64)]))  # fmt: skip
+                                vertex_area[torch.from_numpy(hand_counted)]]))  # fmt: skip
     trees = {name: build_bvh(part.posed(rest), part.faces) for name, part in zip(PARTS, body.parts, strict=True)
              if part is not None}  # fmt: skip
     return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), trees, scale)
@@ -194,15 +198,17 @@ def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor
         return count, deepest, total
     at = pp.posed[:, pts]  # (n, K, 3)
     for name in LIMB_TESTS[f"{HANDS[side]}_arm"]:
-        got = pp.get(name)
+        closed = pp.rb.body.part(name)
+        if closed is None:
+            continue
+        own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
+        lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+        f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
+        got = pp.get(name) if len(f) else None
         if got is None:
             continue
         local, boxes = got
         tree = pp.rb.trees[name]
-        lo, hi = boxes.lo[0][:, 0][:, None], boxes.hi[0][:, 0][:, None]  # each frame's root box
-        f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
-        if len(f) == 0:
-            continue
         inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
         f, k = f[inside], k[inside]
         if len(f) == 0:

@@ -60,6 +60,7 @@ class FrameCheck:
     count: Tensor
     depth: VertexDepths
     contact: Tensor
+    flagged: Tensor | None = None  # (n,) frames the measuring stage itself reads as worse (None: none)
 
 
 def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translations: Tensor, frames: Tensor,
@@ -129,13 +130,15 @@ class WorseLimits(Protocol):
 
 def worse_frames(before: FrameCheck, after: FrameCheck, contacts: ContactInstances, limits: WorseLimits,
                  scale: float) -> Tensor:  # fmt: skip
-    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames);
-    ``scale`` turns body lengths into lengths at 1.80 m."""
+    """``(n,)`` bool over ``after.frames``: penetration or a contact got worse than in ``before`` (all frames), or
+    ``after`` flags the frame; ``scale`` turns body lengths into lengths at 1.80 m."""
     idx = after.frames
     vol_b = before.volume[idx] * scale**3
     grow = after.volume * scale**3 - vol_b
     worse = grow > torch.clamp(limits.worse_volume_fraction * vol_b, min=limits.worse_volume_m3)
     worse |= (after.max_depth - before.max_depth[idx]) * scale > limits.worse_depth_m
+    if after.flagged is not None:
+        worse |= after.flagged
     if contacts.count:
         ok = limits.contact_ok_m / scale
         bad = (after.contact > torch.clamp(before.contact, min=ok)) & ~torch.isnan(after.contact)

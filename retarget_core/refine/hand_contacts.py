@@ -26,7 +26,7 @@ Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -266,7 +266,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     src = source_groups(ctx)
     rb = reach_body(ctx.target, ctx.target_mapping)
     arms = arms_of(ctx)
-    state = measure_hands(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
+    state = first = measure_hands(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
     for _ in range(p.passes):
@@ -279,7 +279,8 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
         state = measure_hands(ctx, rb, apply_moves(motion, arms, total, p.max_reach), src, p, again, state)
     moved = contact_figures(src, state, rb.scale, p)
     changed = torch.nonzero(total.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
-    weight = never_worse_weights(ctx, rb, motion, arms, total, changed, p) if len(changed) else torch.ones(motion.num_frames)
+    weight = (never_worse_weights(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)
+              else torch.ones(motion.num_frames))  # fmt: skip
     out = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
     withdrawn = changed[weight[changed] < 1.0]
     after = contact_figures(src, measure_hands(ctx, rb, out, src, p, withdrawn, state), rb.scale, p)
@@ -315,18 +316,30 @@ def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> Frame
     return FrameCheck(torch.arange(num_frames), vol, mx, cnt, VertexDepths.empty(num_frames, num_vertices), check.contact)
 
 
+def near_clear_parts(src: Tensor, state: HandState, scale: float, p: HandContactParams) -> Tensor:
+    """``(F, 2, 4)`` a hand within ``clear_m`` of a part the source keeps it farther than ``far_m`` from."""
+    return (src > p.far_m) & (state.distance < p.clear_m * scale)
+
+
 def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], total: Tensor,
-                        changed: Tensor, p: HandContactParams) -> Tensor:  # fmt: skip
+                        changed: Tensor, src: Tensor, state: HandState, p: HandContactParams) -> Tensor:  # fmt: skip
     """``(F,)`` the share of the moves kept per frame: the collision stage's never-worse check on the ``changed``
-    frames, with the arms' penetration as the judge reads it (:func:`arm_check`)."""
+    frames, with the arms' penetration as the judge reads it (:func:`arm_check`); a frame where a hand comes
+    within ``clear_m`` of a part the source keeps it clear of, and did not on the input (``state``: the input's
+    measures), is worse too."""
     cp = CollisionParams()
     no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
 
+    near_before = near_clear_parts(src, state, rb.scale, p)
+
     def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
-        return arm_check(ctx, rb, apply_moves(motion, arms, total * weight[:, None, None], p.max_reach), frames)
+        moved = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
+        check = arm_check(ctx, rb, moved, frames)
+        after = near_clear_parts(src, measure_hands(ctx, rb, moved, src, p, frames, state), rb.scale, p)
+        return replace(check, flagged=(after[frames] & ~near_before[frames]).flatten(1).any(dim=1))
 
     before = spread_check(arm_check(ctx, rb, motion, changed), motion.num_frames, ctx.target.num_vertices)
     settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
                                 at_fps(cp.fallback_ramp, motion.fps))  # fmt: skip
-    state = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
-    return state.weight
+    check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
+    return check.weight
