@@ -56,6 +56,8 @@ class ReachBody:
     arm_points: tuple[np.ndarray, ...]  # per arm (left, right): its counted vertices (outside the seam band) tested
     # for penetration: one per ARM_CELL_M cell, and every hand vertex
     arm_area: tuple[Tensor, ...]  # per arm ``(K,)``: the surface each stands for (a cell's face; a hand vertex's own)
+    leg_points: tuple[np.ndarray, ...]  # per leg: counted vertices, one per ARM_CELL_M cell (tested inside the arms)
+    leg_area: tuple[Tensor, ...]
     trees: dict[str, TriangleBVH]
     scale: float  # body lengths per length at 1.80 m
 
@@ -63,7 +65,7 @@ class ReachBody:
         """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's."""
         own = [part.vertices for part in self.body.parts if part is not None]
         hands = [*self.hand_points, *self.coarse_hand_points]
-        return np.unique(np.concatenate([*hands, *self.arm_points, *own]).astype(np.int64))
+        return np.unique(np.concatenate([*hands, *self.arm_points, *self.leg_points, *own]).astype(np.int64))
 
 
 def one_per_cell(rest: np.ndarray, idx: np.ndarray, cell: float) -> np.ndarray:
@@ -92,9 +94,12 @@ def reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND
         arms.append(np.concatenate([rest_of_arm, hand_counted]))
         areas.append(torch.cat([torch.full((len(rest_of_arm),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64),
                                 vertex_area[torch.from_numpy(hand_counted)]]))  # fmt: skip
+    legs = [one_per_cell(rest, np.nonzero((body.part_of_vertex == PARTS.index(f"{h}_leg")) & ~body.seam)[0],
+                         ARM_CELL_M * scale) for h in HANDS]  # fmt: skip
+    leg_area = tuple(torch.full((len(v),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64) for v in legs)
     trees = {name: build_bvh(part.posed(rest), part.faces) for name, part in zip(PARTS, body.parts, strict=True)
              if part is not None}  # fmt: skip
-    return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), trees, scale)
+    return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), tuple(legs), leg_area, trees, scale)
 
 
 @dataclass
@@ -188,37 +193,42 @@ def _copy_reach(out: Reach, other: Reach, rows: Tensor) -> None:
 
 
 def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Per frame of the chunk ``(n,)``: how many sampled vertices of arm ``side`` are inside a part the judge tests
-    it against, the deepest of them and their volume, each depth times its sample's area (deeper than
-    ``max_depth``: counted at it)."""
+    """Per frame of the chunk ``(n,)``, the judge's penetration that arm ``side`` takes part in: its tested vertices
+    inside a part the judge tests it against, and the legs' sampled vertices inside it. How many, the deepest,
+    and their volume (each depth times its vertex's area; deeper than ``max_depth``: counted at it)."""
     n = pp.posed.shape[0]
     count, deepest, total = torch.zeros(n), torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
-    pts = torch.from_numpy(pp.rb.arm_points[side])
-    if len(pts) == 0:
-        return count, deepest, total
-    at = pp.posed[:, pts]  # (n, K, 3)
-    for name in LIMB_TESTS[f"{HANDS[side]}_arm"]:
-        closed = pp.rb.body.part(name)
-        if closed is None:
-            continue
-        own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
-        lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
-        f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
-        got = pp.get(name) if len(f) else None
-        if got is None:
-            continue
-        local, boxes = got
-        tree = pp.rb.trees[name]
-        inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
-        f, k = f[inside], k[inside]
-        if len(f) == 0:
-            continue
-        d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
-        d = torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
-        count.index_add_(0, f, torch.ones(len(f)))
-        total.index_add_(0, f, d * pp.rb.arm_area[side][k])
-        deepest = deepest.scatter_reduce(0, f, d, "amax")
+    arm = f"{HANDS[side]}_arm"
+    tests = [(pp.rb.arm_points[side], pp.rb.arm_area[side], name) for name in LIMB_TESTS[arm]]
+    tests += [(pts, area, arm) for pts, area in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]
+    for pts, area, name in tests:
+        f, k, d = _inside(pp, torch.from_numpy(pts), name, max_depth)
+        if len(f):
+            count.index_add_(0, f, torch.ones(len(f)))
+            total.index_add_(0, f, d * area[k])
+            deepest = deepest.scatter_reduce(0, f, d, "amax")
     return count, deepest, total
+
+
+def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The vertices ``pts (K,)`` inside part ``name`` on the chunk's frames: frame and index into ``pts`` ``(N,)``
+    and depth ``(N,)`` (at most ``max_depth``)."""
+    e = torch.zeros(0, dtype=torch.long)
+    closed = pp.rb.body.part(name)
+    if closed is None or len(pts) == 0:
+        return e, e, torch.zeros(0, dtype=torch.float64)
+    at = pp.posed[:, pts]  # (n, K, 3)
+    own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
+    lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+    f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
+    got = pp.get(name) if len(f) else None
+    if got is None:
+        return e, e, torch.zeros(0, dtype=torch.float64)
+    tree, boxes = pp.rb.trees[name], got[1]
+    inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
+    f, k = f[inside], k[inside]
+    d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
+    return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
 
 
 def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, PosedBoxes], posed: Tensor,

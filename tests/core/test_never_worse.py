@@ -102,3 +102,18 @@ def test_blends_between_two_close_spans_do_not_leave_blips() -> None:
     far = torch.ones(F)
     far[5], far[30] = 0.0, 0.0  # 25 apart: two blends, full weight between
     assert float(fallback_weights(far, 8)[17]) == 1.0
+
+
+def test_a_frame_the_stage_flags_falls_back_like_a_deeper_one() -> None:
+    """A stage may read a frame as worse by its own measure (FrameCheck.flagged): same depths everywhere, frame 10
+    flagged while any of the change stays there."""
+    before, _ = _toy(torch.zeros(F))
+
+    def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
+        check = _check(frames, torch.full((len(frames),), 0.01))
+        return FrameCheck(check.frames, check.volume, check.max_depth, check.count, check.depth, check.contact,
+                          flagged=(frames == 10) & (weight[frames] > 0))  # fmt: skip
+
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, SETTINGS)
+    assert float(guard.weight[10]) == 0.0
+    assert float(guard.weight[0]) == 1.0 and float(guard.weight[-1]) == 1.0
