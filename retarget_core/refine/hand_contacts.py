@@ -263,9 +263,11 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     t0 = time.perf_counter()
     if ctx.source_view.num_frames != motion.num_frames or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "source frames differ", "seconds": 0.0})
-    src = source_groups(ctx)
-    rb = reach_body(ctx.target, ctx.target_mapping)
     arms = arms_of(ctx)
+    rb = reach_body(ctx.target, ctx.target_mapping) if arms else None
+    if rb is None or not all(len(h) for h in rb.hand_points):
+        return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm with a hand mesh", "seconds": 0.0})
+    src = source_groups(ctx)
     state = first = measure_hands(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)

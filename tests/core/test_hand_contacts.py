@@ -155,3 +155,12 @@ def test_the_moves_smoothing_follows_defined_frames_and_never_overshoots() -> No
     assert float(fit.min()) >= 0.0 and float(fit.max()) <= 1.0  # a weighted mean: no ringing
     jerk = (fit[3:] - 3 * fit[2:-1] + 3 * fit[1:-2] - fit[:-3]).abs().max()
     assert float(jerk) < 0.1  # the wanted curve's own third difference at its steps: 1
+
+
+def test_a_body_without_a_mapped_forearm_is_left_as_it_is() -> None:
+    from tests.core.test_collisions import _arm_boxes, _context as boxes_context, _pushed_in
+
+    ch = _arm_boxes()  # Hips, Spine, LeftArm, LeftHand: no forearm to bend
+    motion = _pushed_in(ch, 0.02, frames=4)
+    out = hand_contacts.run(boxes_context(ch, motion), motion)
+    assert out.motion is motion and out.report["frames_changed"] == 0
