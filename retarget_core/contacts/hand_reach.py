@@ -10,6 +10,7 @@ inside the part makes the distance 0. Lengths in metres on the body's own scale.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,12 +37,14 @@ from retarget_core.metrics.acceptance_body import (
     AcceptanceBody,
     ClosedPart,
     acceptance_body,
+    body_key,
 )
 from retarget_core.motion import Motion
 
 HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
 COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
 ARM_CELL_M = 0.02  # the arms' penetration check: one arm vertex per cell of this size, and every hand vertex
+CACHE_SIZE = 4  # bodies kept in memory
 INSIDE_CHECK_M = 0.03  # sampled points this close to a part are tested for inside (deeper ones: a hand in a part)
 
 
@@ -75,7 +78,20 @@ def one_per_cell(rest: np.ndarray, idx: np.ndarray, cell: float) -> np.ndarray:
     return np.sort(idx[first])
 
 
-def reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND_CELL_M) -> ReachBody:
+def reach_body(character: Character, mapping: JointMapping) -> ReachBody:
+    """:func:`build_reach_body`, cached in-process by the character's content (its trees take a second to build)."""
+    key = body_key(character, mapping)
+    hit = _CACHE.get(key)
+    if hit is not None:
+        _CACHE.move_to_end(key)
+        return hit
+    _CACHE[key] = built = build_reach_body(character, mapping)
+    while len(_CACHE) > CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return built
+
+
+def build_reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND_CELL_M) -> ReachBody:
     """The judge's body of ``character`` with sampled hands and arms and part trees."""
     body = acceptance_body(character, mapping)
     rest = character.vertices.detach().double().numpy()
@@ -110,6 +126,9 @@ class Reach:
     distance: Tensor
     hand_point: Tensor
     surface_point: Tensor
+
+
+_CACHE: OrderedDict[str, ReachBody] = OrderedDict()
 
 
 class PosedParts:
@@ -271,5 +290,5 @@ def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames:
     return posed
 
 
-__all__ = ["HAND_CELL_M", "PosedParts", "Reach", "ReachBody", "arm_penetration", "hand_reach", "one_per_cell",
+__all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "arm_penetration", "hand_reach", "one_per_cell",
            "posed_for_reach", "reach_body"]

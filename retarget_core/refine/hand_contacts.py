@@ -127,30 +127,34 @@ class HandState:
 
 
 def measure_hands(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor, p: HandContactParams,
-                  frames: Tensor, state: HandState | None = None, chunk: int = 64) -> HandState:  # fmt: skip
+                  frames: Tensor, state: HandState | None = None, chunk: int = 64,
+                  clear_only: bool = False) -> HandState:  # fmt: skip
     """Measure each (frame, hand, contact part) the stage acts on at clip ``frames (n,)``: where the source touches
-    it (searched up to ``reach_m``) or stays clear of it (up to ``clear_m``); ``src (F, 2, 4)`` from
-    :func:`source_groups`. The other frames keep their figures in ``state`` (a copy is returned)."""
+    it (searched up to ``reach_m``) or stays clear of it (up to ``clear_m``; ``clear_only``: only these); ``src
+    (F, 2, 4)`` from :func:`source_groups`. The other entries keep their figures in ``state`` (a copy is
+    returned)."""
     f_n = motion.num_frames
     inf, nan = float("inf"), float("nan")
     state = (HandState(torch.full((f_n, 2, 4), inf, dtype=torch.float64), torch.full((f_n, 2, 4, 3), nan, dtype=torch.float64),
                        torch.full((f_n, 2, 4, 3), nan, dtype=torch.float64)) if state is None
              else HandState(state.distance.clone(), state.hand_point.clone(), state.surface_point.clone()))  # fmt: skip
-    state.distance[frames], state.hand_point[frames], state.surface_point[frames] = inf, nan, nan
-    acted = (src < p.contact_m) | (src > p.far_m)
+    acted = (src > p.far_m) | ((src < p.contact_m) & (not clear_only))
+    f, h, g = torch.nonzero(acted[frames], as_tuple=True)
+    state.distance[frames[f], h, g], state.hand_point[frames[f], h, g], state.surface_point[frames[f], h, g] = inf, nan, nan
     frames = frames[acted[frames].flatten(1).any(dim=1)]
     for s in range(0, len(frames), chunk):
         fr = frames[s : s + chunk]
-        _measure_queries(rb, posed_for_reach(rb, ctx.target, motion, fr), fr, src[fr], p, state)
+        _measure_queries(rb, posed_for_reach(rb, ctx.target, motion, fr), fr, src[fr], p, state, clear_only)
     return state
 
 
 def _measure_queries(rb: ReachBody, posed: Tensor, frames: Tensor, src: Tensor, p: HandContactParams,
-                     state: HandState) -> None:  # fmt: skip
+                     state: HandState, clear_only: bool = False) -> None:  # fmt: skip
     """Fill ``state`` at ``frames (n,)`` (``src (n, 2, 4)`` their source distances): each (hand, group) the source
     touches, searched up to ``reach_m`` from the hand's fine samples, and each it stays clear of, up to
     ``clear_m`` from its coarse ones; the nearest of the group's parts."""
-    for wanted, bound, coarse in ((src < p.contact_m, p.reach_m, False), (src > p.far_m, p.clear_m, True)):
+    kinds = [(src < p.contact_m, p.reach_m, False)] if not clear_only else []
+    for wanted, bound, coarse in [*kinds, (src > p.far_m, p.clear_m, True)]:
         f_i, h_i, g_i = torch.nonzero(wanted, as_tuple=True)
         rows, parts = [], []
         for k in range(2):  # a group holds one or two parts (the legs)
@@ -337,7 +341,7 @@ def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, arms:
     def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
         moved = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
         check = arm_check(ctx, rb, moved, frames)
-        after = near_clear_parts(src, measure_hands(ctx, rb, moved, src, p, frames, state), rb.scale, p)
+        after = near_clear_parts(src, measure_hands(ctx, rb, moved, src, p, frames, state, clear_only=True), rb.scale, p)
         return replace(check, flagged=(after[frames] & ~near_before[frames]).flatten(1).any(dim=1))
 
     before = spread_check(arm_check(ctx, rb, motion, changed), motion.num_frames, ctx.target.num_vertices)
