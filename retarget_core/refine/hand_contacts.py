@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
+from retarget_core.canonical import JointMapping
 from retarget_core.contacts.hand_reach import (
     PosedParts,
     Reach,
@@ -85,14 +86,13 @@ class Arm:
     side: int
 
 
-def arms_of(ctx: RefineContext) -> list[Arm]:
-    """The target's arms whose three joints are mapped (left, right)."""
-    m = ctx.target_mapping.joints
+def arms_of(mapping: JointMapping) -> list[Arm]:
+    """The arms whose three joints ``mapping`` maps (left, right)."""
     out = []
     for side, prefix in enumerate(("Left", "Right")):
-        joints = [m.get(f"{prefix}Arm"), m.get(f"{prefix}ForeArm"), m.get(f"{prefix}Hand")]
-        if all(j is not None for j in joints):
-            out.append(Arm(int(joints[0]), int(joints[1]), int(joints[2]), side))  # type: ignore[arg-type]
+        upper, fore, hand = (mapping.joints.get(f"{prefix}{n}") for n in ("Arm", "ForeArm", "Hand"))
+        if upper is not None and fore is not None and hand is not None:
+            out.append(Arm(upper, fore, hand, side))
     return out
 
 
@@ -267,7 +267,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     t0 = time.perf_counter()
     if ctx.source_view.num_frames != motion.num_frames or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "source frames differ", "seconds": 0.0})
-    arms = arms_of(ctx)
+    arms = arms_of(ctx.target_mapping)
     rb = reach_body(ctx.target, ctx.target_mapping) if arms else None
     if rb is None or not all(len(h) for h in rb.hand_points):
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm with a hand mesh", "seconds": 0.0})
@@ -292,7 +292,9 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     after = contact_figures(src, measure_hands(ctx, rb, out, src, p, withdrawn, state), rb.scale, p)
     report = {"frames_changed": len(changed), "withdrawn_frames": len(withdrawn),
               "max_move_cm": round(float(total.norm(dim=-1).max()) / rb.scale * 100.0, 2),
-              "contacts_before": before, "contacts_moved": moved, "contacts_after": after,
+              "source_contacts": before["source_contacts"],
+              **{f"{k}_{when}": figures[k] for when, figures in (("before", before), ("moved", moved), ("after", after))
+                 for k in ("preservation", "false_contacts")},
               "seconds": round(time.perf_counter() - t0, 3)}  # fmt: skip
     return StageOutcome(out, report)
 
