@@ -49,6 +49,7 @@ from retarget_core.metrics.depth import VertexDepths
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
 from retarget_core.refine.collision_params import CollisionParams, at_fps
+from retarget_core.refine.foot_lock import subtree
 from retarget_core.refine.judged_contacts import source_hand_distances
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 from retarget_core.refine.two_bone_ik import two_bone_ik
@@ -78,21 +79,29 @@ class HandContactParams:
 
 @dataclass(frozen=True)
 class Arm:
-    """One arm's joints (indices into the skeleton) and its hand's index in :data:`HANDS`."""
+    """One arm's joints (indices into the skeleton) and its hand's index in :data:`HANDS`; ``followers``: joints
+    mapped as this hand's fingers that hang from the forearm chain, not from the hand (a thumb on the forearm, as
+    on the Quaternius rigs): they keep their world rotation with the hand."""
 
     upper: int
     fore: int
     hand: int
     side: int
+    followers: tuple[int, ...] = ()
 
 
-def arms_of(mapping: JointMapping) -> list[Arm]:
-    """The arms whose three joints ``mapping`` maps (left, right)."""
+def arms_of(mapping: JointMapping, parents: list[int]) -> list[Arm]:
+    """The arms whose three joints ``mapping`` maps (left, right), on a skeleton of ``parents``."""
     out = []
     for side, prefix in enumerate(("Left", "Right")):
         upper, fore, hand = (mapping.joints.get(f"{prefix}{n}") for n in ("Arm", "ForeArm", "Hand"))
-        if upper is not None and fore is not None and hand is not None:
-            out.append(Arm(upper, fore, hand, side))
+        if upper is None or fore is None or hand is None:
+            continue
+        in_hand = set(subtree(parents, hand))
+        fingers = [j for name, j in mapping.extras.items() if name.startswith(f"{prefix}Hand")]
+        roots = [j for j in fingers if j not in in_hand and parents[j] not in in_hand and parents[j] not in fingers]
+        followers = tuple(roots)  # the first joint of each such finger: the rest follow it
+        out.append(Arm(upper, fore, hand, side, followers))
     return out
 
 
@@ -252,8 +261,11 @@ def apply_moves(motion: Motion, arms: list[Arm], moves: Tensor, max_reach: float
         local[idx, arm.upper] = rot.normalize(rot.mul(rot.inv(grot[idx, sk.parents[arm.upper]]), new_a))
         fore_parent = rot.mul(delta_a, grot[idx, sk.parents[arm.fore]])
         local[idx, arm.fore] = rot.normalize(rot.mul(rot.inv(fore_parent), new_b))
-        hand_parent = rot.mul(delta_b, grot[idx, sk.parents[arm.hand]])
-        local[idx, arm.hand] = rot.normalize(rot.mul(rot.inv(hand_parent), grot[idx, arm.hand]))
+        below_fore = set(subtree(sk.parents, arm.fore))
+        for j in (arm.hand, *arm.followers):  # world rotations kept: the hand, and fingers hung from the forearm
+            par = sk.parents[j]
+            delta = delta_b if par in below_fore else delta_a
+            local[idx, j] = rot.normalize(rot.mul(rot.inv(rot.mul(delta, grot[idx, par])), grot[idx, j]))
     return Motion(sk, motion.fps, local, motion.translations.clone(), motion.name)
 
 
@@ -267,7 +279,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     t0 = time.perf_counter()
     if ctx.source_view.num_frames != motion.num_frames or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "source frames differ", "seconds": 0.0})
-    arms = arms_of(ctx.target_mapping)
+    arms = arms_of(ctx.target_mapping, ctx.target.skeleton.parents)
     rb = reach_body(ctx.target, ctx.target_mapping) if arms else None
     if rb is None or not all(len(h) for h in rb.hand_points):
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm with a hand mesh", "seconds": 0.0})

@@ -57,7 +57,7 @@ def _hanging(ch: Character, mapping: JointMapping, rb: ReachBody) -> Motion:
     outer = v[level[(v[level, 0] * side).argmax()]]
     moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
     moves[:, LEFT] = outer + torch.tensor([float(side) * 0.07, 0.0, 0.0], dtype=torch.float64) - wrist
-    return apply_moves(rest, arms_of(mapping), moves, 0.995)
+    return apply_moves(rest, arms_of(mapping, ch.skeleton.parents), moves, 0.995)
 
 
 def _placed(ch: Character, mapping: JointMapping, rb: ReachBody, motion: Motion, side: int, part: str,
@@ -71,7 +71,7 @@ def _placed(ch: Character, mapping: JointMapping, rb: ReachBody, motion: Motion,
     move = gap * (1.0 - clearance / float(r.distance[0]))
     moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
     moves[:, side] = move
-    return apply_moves(motion, arms_of(mapping), moves, 0.995)
+    return apply_moves(motion, arms_of(mapping, ch.skeleton.parents), moves, 0.995)
 
 
 def _context(ch: Character, mapping: JointMapping, source: Motion, target: Motion) -> RefineContext:
@@ -101,7 +101,7 @@ def _lifted(motion: Motion, mapping: JointMapping, side: int, offset: Tensor) ->
     ease = torch.minimum(smoothstep((t - 5.0) / 5.0), smoothstep((34.0 - t) / 5.0))
     moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)
     moves[:, side] = ease[:, None] * offset
-    return apply_moves(motion, arms_of(mapping), moves, 0.995)
+    return apply_moves(motion, arms_of(mapping, motion.skeleton.parents), moves, 0.995)
 
 
 def test_a_hand_lifted_off_its_thigh_is_put_back_and_an_idle_arm_is_untouched(skinny) -> None:  # type: ignore[no-untyped-def]
