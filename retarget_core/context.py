@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -78,6 +78,25 @@ RefineStage = Callable[[RefineContext, Motion], StageOutcome]
 """A refinement stage: ``(context, motion so far) -> outcome``."""
 
 
+P = TypeVar("P")
+
+
+def computes_on_cpu(stage: Callable[[RefineContext, Motion, P | None], StageOutcome],
+                    ) -> Callable[[RefineContext, Motion, P | None], StageOutcome]:  # fmt: skip
+    """A stage ``run(ctx, motion, params=None)`` that computes on the CPU: a motion on another device is moved to
+    the CPU for it and its result moved back."""
+
+    def run(ctx: RefineContext, motion: Motion, params: P | None = None) -> StageOutcome:
+        device = motion.rotations.device
+        if device.type == "cpu":
+            return stage(ctx, motion, params)
+        outcome = stage(ctx, motion.to(torch.device("cpu")), params)
+        return StageOutcome(outcome.motion.to(device), outcome.report)
+
+    run.__doc__, run.__name__ = stage.__doc__, getattr(stage, "__name__", "run")
+    return run
+
+
 def resolve_device(name: str) -> torch.device:
     """``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (CUDA when available) as a torch device; a CUDA device that is
     not there falls back to the CPU with no error (the job's warnings say so)."""
@@ -88,4 +107,4 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-__all__ = ["RefineContext", "RefineStage", "StageOutcome", "resolve_device"]
+__all__ = ["RefineContext", "RefineStage", "StageOutcome", "computes_on_cpu", "resolve_device"]

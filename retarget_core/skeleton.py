@@ -103,3 +103,12 @@ class Skeleton:
 
 
 __all__ = ["Skeleton"]
+
+
+def subtree(parents: list[int], joint: int) -> list[int]:
+    """``joint`` and every joint below it, in skeleton order (parents before children)."""
+    out = {joint}
+    for j in range(joint + 1, len(parents)):
+        if parents[j] in out:
+            out.add(j)
+    return sorted(out)

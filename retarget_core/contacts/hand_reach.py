@@ -37,7 +37,7 @@ from retarget_core.metrics.acceptance_body import (
     AcceptanceBody,
     ClosedPart,
     acceptance_body,
-    body_key,
+    cached_per_body,
 )
 from retarget_core.motion import Motion
 
@@ -80,15 +80,7 @@ def one_per_cell(rest: np.ndarray, idx: np.ndarray, cell: float) -> np.ndarray:
 
 def reach_body(character: Character, mapping: JointMapping) -> ReachBody:
     """:func:`build_reach_body`, cached in-process by the character's content (its trees take a second to build)."""
-    key = body_key(character, mapping)
-    hit = _CACHE.get(key)
-    if hit is not None:
-        _CACHE.move_to_end(key)
-        return hit
-    _CACHE[key] = built = build_reach_body(character, mapping)
-    while len(_CACHE) > CACHE_SIZE:
-        _CACHE.popitem(last=False)
-    return built
+    return cached_per_body(_CACHE, character, mapping, build_reach_body, CACHE_SIZE)
 
 
 def build_reach_body(character: Character, mapping: JointMapping, cell_m: float = HAND_CELL_M) -> ReachBody:

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -203,6 +205,7 @@ def build_acceptance_body(character: Character, mapping: JointMapping) -> Accept
 
 
 _CACHE: OrderedDict[str, AcceptanceBody] = OrderedDict()
+T = TypeVar("T")
 
 
 def body_key(character: Character, mapping: JointMapping) -> str:
@@ -216,18 +219,24 @@ def body_key(character: Character, mapping: JointMapping) -> str:
     return h.hexdigest()
 
 
+def cached_per_body(cache: OrderedDict[str, T], character: Character, mapping: JointMapping,
+                    build: Callable[[Character, JointMapping], T], size: int) -> T:  # fmt: skip
+    """``build(character, mapping)``, kept in ``cache`` (least recently used first out, at most ``size``) by the
+    character's content (:func:`body_key`)."""
+    key = body_key(character, mapping)
+    hit = cache.get(key)
+    if hit is not None:
+        cache.move_to_end(key)
+        return hit
+    cache[key] = built = build(character, mapping)
+    while len(cache) > size:
+        cache.popitem(last=False)
+    return built
+
+
 def acceptance_body(character: Character, mapping: JointMapping) -> AcceptanceBody:
     """:func:`build_acceptance_body`, cached in-process by the character's content."""
-    key = body_key(character, mapping)
-    hit = _CACHE.get(key)
-    if hit is not None:
-        _CACHE.move_to_end(key)
-        return hit
-    body = build_acceptance_body(character, mapping)
-    _CACHE[key] = body
-    while len(_CACHE) > BODY_CACHE_SIZE:
-        _CACHE.popitem(last=False)
-    return body
+    return cached_per_body(_CACHE, character, mapping, build_acceptance_body, BODY_CACHE_SIZE)
 
 
 __all__ = [
@@ -240,6 +249,7 @@ __all__ = [
     "ClosedPart",
     "acceptance_body",
     "body_key",
+    "cached_per_body",
     "build_acceptance_body",
     "contact_targets",
     "seam_distances",

@@ -42,12 +42,13 @@ from torch import Tensor
 from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS
 from retarget_core.character import Character
-from retarget_core.context import RefineContext, StageOutcome
+from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.energy.sdf import effective_depth, sample_pairs, segment_matrices
 from retarget_core.metrics.feet_acceptance import foot_vertices_of
 from retarget_core.motion import Motion
 from retarget_core.refine.temporal import smoothstep
 from retarget_core.refine.two_bone_ik import two_bone_ik
+from retarget_core.skeleton import subtree
 
 REFERENCE_HEIGHT_M = 1.80
 REFERENCE_FPS = 30.0
@@ -414,15 +415,6 @@ def _frames_from(inside: Tensor) -> Tensor:
     return torch.minimum((at[nearest] - frames).abs(), (frames - before).abs())
 
 
-def subtree(parents: list[int], joint: int) -> list[int]:
-    """``joint`` and every joint below it, in skeleton order."""
-    out = {joint}
-    for j in range(joint + 1, len(parents)):
-        if parents[j] in out:
-            out.add(j)
-    return sorted(out)
-
-
 def apply_plans(
     motion: Motion, grot: Tensor, gpos: Tensor, root: int, legs: list[Leg], plans: list[LegPlan], drop: Tensor,
     lift: list[Tensor], params: FootLockParams, rest_rot: Tensor,
@@ -532,15 +524,12 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
     }
 
 
+@computes_on_cpu
 def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None) -> StageOutcome:
     """Hold the source's plants on the floor (module doc). Returns the motion and a report: frames changed,
     plants locked, foot slide on planted frames before/after, pelvis lowered frames, leg penetration
     before/after (on the changed frames) and seconds."""
     params = params or FootLockParams()
-    device = motion.rotations.device
-    if device.type != "cpu":
-        outcome = run(ctx, motion.to(torch.device("cpu")), params)
-        return StageOutcome(outcome.motion.to(device), outcome.report)
     t0 = time.perf_counter()
     character = ctx.target
     sk = motion.skeleton

@@ -43,16 +43,16 @@ from retarget_core.contacts.hand_reach import (
     posed_for_reach,
     reach_body,
 )
-from retarget_core.context import RefineContext, StageOutcome
+from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.motion import Motion
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
 from retarget_core.refine.collision_params import CollisionParams, at_fps
-from retarget_core.refine.foot_lock import subtree
 from retarget_core.refine.judged_contacts import source_hand_distances
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 from retarget_core.refine.two_bone_ik import two_bone_ik
+from retarget_core.skeleton import subtree
 
 KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's hand is within 2.5 cm
 FALSE_M = 0.01  # ... and a hand far from a part on the source makes a false contact within 1 cm of it
@@ -269,13 +269,10 @@ def apply_moves(motion: Motion, arms: list[Arm], moves: Tensor, max_reach: float
     return Motion(sk, motion.fps, local, motion.translations.clone(), motion.name)
 
 
+@computes_on_cpu
 def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = None) -> StageOutcome:
     """Hands onto the parts the source touches and clear of those it does not (module doc)."""
     p = params or HandContactParams()
-    device = motion.rotations.device
-    if device.type != "cpu":
-        outcome = run(ctx, motion.to(torch.device("cpu")), p)
-        return StageOutcome(outcome.motion.to(device), outcome.report)
     t0 = time.perf_counter()
     if ctx.source_view.num_frames != motion.num_frames or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "source frames differ", "seconds": 0.0})
