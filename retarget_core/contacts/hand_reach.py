@@ -32,7 +32,6 @@ from retarget_core.geometry.triangle_bvh import (
 )
 from retarget_core.metrics.acceptance_body import (
     HANDS,
-    LIMB_TESTS,
     PARTS,
     AcceptanceBody,
     ClosedPart,
@@ -59,6 +58,7 @@ class ReachBody:
     arm_points: tuple[np.ndarray, ...]  # per arm (left, right): its counted vertices (outside the seam band) tested
     # for penetration: one per ARM_CELL_M cell, and every hand vertex
     arm_area: tuple[Tensor, ...]  # per arm ``(K,)``: the surface each stands for (a cell's face; a hand vertex's own)
+    arm_cells: tuple[int, ...]  # per arm: how many of ``arm_points`` (the first) are the arm's cells, not its hand
     leg_points: tuple[np.ndarray, ...]  # per leg: counted vertices, one per ARM_CELL_M cell (tested inside the arms)
     leg_area: tuple[Tensor, ...]
     trees: dict[str, TriangleBVH]
@@ -92,7 +92,7 @@ def build_reach_body(character: Character, mapping: JointMapping, cell_m: float 
     hands = tuple(one_per_cell(rest, idx, cell_m * scale) for idx in hand_idx)
     coarse = tuple(one_per_cell(rest, idx, COARSE_HAND_CELL_M * scale) for idx in hand_idx)
     vertex_area = vertex_areas(character.vertices.detach().double(), character.faces).double()
-    arms, areas = [], []
+    arms, areas, cells = [], [], []
     for h in HANDS:
         counted = (body.part_of_vertex == PARTS.index(f"{h}_arm")) & ~body.seam
         counted[body.hand_vertices[h]] = False
@@ -100,6 +100,7 @@ def build_reach_body(character: Character, mapping: JointMapping, cell_m: float 
         hand_all = np.asarray(body.hand_vertices[h], dtype=np.int64)
         hand_counted = hand_all[~body.seam[hand_all]]  # every hand vertex: the hand is what the stage brings near
         arms.append(np.concatenate([rest_of_arm, hand_counted]))
+        cells.append(len(rest_of_arm))
         areas.append(torch.cat([torch.full((len(rest_of_arm),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64),
                                 vertex_area[torch.from_numpy(hand_counted)]]))  # fmt: skip
     legs = [one_per_cell(rest, np.nonzero((body.part_of_vertex == PARTS.index(f"{h}_leg")) & ~body.seam)[0],
@@ -107,7 +108,7 @@ def build_reach_body(character: Character, mapping: JointMapping, cell_m: float 
     leg_area = tuple(torch.full((len(v),), (ARM_CELL_M * scale) ** 2, dtype=torch.float64) for v in legs)
     trees = {name: build_bvh(part.posed(rest), part.faces) for name, part in zip(PARTS, body.parts, strict=True)
              if part is not None}  # fmt: skip
-    return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), tuple(legs), leg_area, trees, scale)
+    return ReachBody(body, hands, coarse, tuple(arms), tuple(areas), tuple(cells), tuple(legs), leg_area, trees, scale)
 
 
 @dataclass
@@ -203,45 +204,6 @@ def _copy_reach(out: Reach, other: Reach, rows: Tensor) -> None:
         other.distance[rows], other.hand_point[rows], other.surface_point[rows])  # fmt: skip
 
 
-def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Per frame of the chunk ``(n,)``, the judge's penetration that arm ``side`` takes part in: its tested vertices
-    inside a part the judge tests it against, and the legs' sampled vertices inside it. How many, the deepest,
-    and their volume (each depth times its vertex's area; deeper than ``max_depth``: counted at it)."""
-    n = pp.posed.shape[0]
-    count, deepest, total = torch.zeros(n), torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
-    arm = f"{HANDS[side]}_arm"
-    tests = [(pp.rb.arm_points[side], pp.rb.arm_area[side], name) for name in LIMB_TESTS[arm]]
-    tests += [(pts, area, arm) for pts, area in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]
-    for pts, area, name in tests:
-        f, k, d = _inside(pp, torch.from_numpy(pts), name, max_depth)
-        if len(f):
-            count.index_add_(0, f, torch.ones(len(f)))
-            total.index_add_(0, f, d * area[k])
-            deepest = deepest.scatter_reduce(0, f, d, "amax")
-    return count, deepest, total
-
-
-def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
-    """The vertices ``pts (K,)`` inside part ``name`` on the chunk's frames: frame and index into ``pts`` ``(N,)``
-    and depth ``(N,)`` (at most ``max_depth``)."""
-    e = torch.zeros(0, dtype=torch.long)
-    closed = pp.rb.body.part(name)
-    if closed is None or len(pts) == 0:
-        return e, e, torch.zeros(0, dtype=torch.float64)
-    at = pp.posed[:, pts]  # (n, K, 3)
-    own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
-    lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
-    f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
-    got = pp.get(name) if len(f) else None
-    if got is None:
-        return e, e, torch.zeros(0, dtype=torch.float64)
-    tree, boxes = pp.rb.trees[name], got[1]
-    inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
-    f, k = f[inside], k[inside]
-    d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
-    return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
-
-
 def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, PosedBoxes], posed: Tensor,
           frame: Tensor, pts: Tensor, max_distance: Tensor, inside_check: float) -> None:  # fmt: skip
     """:func:`hand_reach` of the queries ``sel`` of one (part, hand): every sampled point searched, the nearest
@@ -282,5 +244,5 @@ def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames:
     return posed
 
 
-__all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "arm_penetration", "hand_reach", "one_per_cell",
+__all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "hand_reach", "one_per_cell",
            "posed_for_reach", "reach_body"]

@@ -26,37 +26,25 @@ Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
-from retarget_core.canonical import JointMapping
-from retarget_core.contacts.hand_reach import (
-    PosedParts,
-    Reach,
-    ReachBody,
-    arm_penetration,
-    hand_reach,
-    posed_for_reach,
-    reach_body,
-)
+from retarget_core.contacts.hand_reach import Reach, ReachBody, hand_reach, posed_for_reach, reach_body
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
-from retarget_core.metrics.depth import VertexDepths
 from retarget_core.motion import Motion
-from retarget_core.refine.collision_check import ContactInstances, FrameCheck
-from retarget_core.refine.collision_params import CollisionParams, at_fps
+from retarget_core.refine.arms import Arm, arms_of
+from retarget_core.refine.judged_check import never_worse_weights
 from retarget_core.refine.judged_contacts import source_hand_distances
-from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 from retarget_core.refine.two_bone_ik import two_bone_ik
 from retarget_core.skeleton import subtree
 
 KEPT_M = 0.025  # ACCEPTANCE.md: a source contact is kept when the result's hand is within 2.5 cm
 FALSE_M = 0.01  # ... and a hand far from a part on the source makes a false contact within 1 cm of it
-ARM_DEPTH_CAP_M = 0.10  # arm vertices deeper than this in a part count at this depth
 
 
 @dataclass(frozen=True)
@@ -75,34 +63,6 @@ class HandContactParams:
     hold_weight: float = 3.0  # a touching hand already near its part: firmly no move (moves nearby barely spread)
     passes: int = 2  # measure-and-move passes
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
-
-
-@dataclass(frozen=True)
-class Arm:
-    """One arm's joints (indices into the skeleton) and its hand's index in :data:`HANDS`; ``followers``: joints
-    mapped as this hand's fingers that hang from the forearm chain, not from the hand (a thumb on the forearm, as
-    on the Quaternius rigs): they keep their world rotation with the hand."""
-
-    upper: int
-    fore: int
-    hand: int
-    side: int
-    followers: tuple[int, ...] = ()
-
-
-def arms_of(mapping: JointMapping, parents: list[int]) -> list[Arm]:
-    """The arms whose three joints ``mapping`` maps (left, right), on a skeleton of ``parents``."""
-    out = []
-    for side, prefix in enumerate(("Left", "Right")):
-        upper, fore, hand = (mapping.joints.get(f"{prefix}{n}") for n in ("Arm", "ForeArm", "Hand"))
-        if upper is None or fore is None or hand is None:
-            continue
-        in_hand = set(subtree(parents, hand))
-        fingers = [j for name, j in mapping.extras.items() if name.startswith(f"{prefix}Hand")]
-        roots = [j for j in fingers if j not in in_hand and parents[j] not in in_hand and parents[j] not in fingers]
-        followers = tuple(roots)  # the first joint of each such finger: the rest follow it
-        out.append(Arm(upper, fore, hand, side, followers))
-    return out
 
 
 def contact_groups(side: int) -> list[list[int]]:
@@ -294,7 +254,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
         state = measure_hands(ctx, rb, apply_moves(motion, arms, total, p.max_reach), src, p, again, state)
     moved = contact_figures(src, state, rb.scale, p)
     changed = torch.nonzero(total.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
-    weight = (never_worse_weights(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)
+    weight = (never_worse_share(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)
               else torch.ones(motion.num_frames))  # fmt: skip
     out = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
     withdrawn = changed[weight[changed] < 1.0]
@@ -308,55 +268,23 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     return StageOutcome(out, report)
 
 
-def arm_check(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, chunk: int = 64) -> FrameCheck:
-    """Both arms' penetration as the judge reads it (sampled arm vertices inside the parts it tests them against)
-    on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check: ``volume`` the sampled depths
-    times their samples' areas (m^3), ``max_depth`` the deepest, ``count`` how many."""
-    n = len(frames)
-    vol, mx, cnt = torch.zeros(n), torch.zeros(n), torch.zeros(n)
-    cap = ARM_DEPTH_CAP_M * rb.scale
-    for s in range(0, n, chunk):
-        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
-        for side in range(2):
-            c, d, t = arm_penetration(pp, side, cap)
-            cnt[s : s + chunk] += c
-            mx[s : s + chunk] = torch.maximum(mx[s : s + chunk], d.float())
-            vol[s : s + chunk] += t.float()
-    depth = VertexDepths.empty(n, ctx.target.num_vertices)
-    return FrameCheck(frames, vol, mx, cnt, depth, torch.zeros(0))
-
-
-def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> FrameCheck:
-    """``check`` as a check of every clip frame (zeros on the frames it did not measure: they never change)."""
-    vol, mx, cnt = torch.zeros(num_frames), torch.zeros(num_frames), torch.zeros(num_frames)
-    vol[check.frames], mx[check.frames], cnt[check.frames] = check.volume, check.max_depth, check.count
-    return FrameCheck(torch.arange(num_frames), vol, mx, cnt, VertexDepths.empty(num_frames, num_vertices), check.contact)
-
-
 def near_clear_parts(src: Tensor, state: HandState, scale: float, p: HandContactParams) -> Tensor:
     """``(F, 2, 4)`` a hand within ``clear_m`` of a part the source keeps it farther than ``far_m`` from."""
     return (src > p.far_m) & (state.distance < p.clear_m * scale)
 
 
-def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], total: Tensor,
-                        changed: Tensor, src: Tensor, state: HandState, p: HandContactParams) -> Tensor:  # fmt: skip
-    """``(F,)`` the share of the moves kept per frame: the collision stage's never-worse check on the ``changed``
-    frames, with the arms' penetration as the judge reads it (:func:`arm_check`); a frame where a hand comes
-    within ``clear_m`` of a part the source keeps it clear of, and did not on the input (``state``: the input's
-    measures), is worse too."""
-    cp = CollisionParams()
-    no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
-
+def never_worse_share(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], total: Tensor,
+                      changed: Tensor, src: Tensor, state: HandState, p: HandContactParams) -> Tensor:  # fmt: skip
+    """``(F,)`` the share of the moves kept per frame (:func:`retarget_core.refine.judged_check.never_worse_weights`);
+    a frame where a hand comes within ``clear_m`` of a part the source keeps it clear of, and did not on the input
+    (``state``: the input's measures), is worse too."""
     near_before = near_clear_parts(src, state, rb.scale, p)
 
-    def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
-        moved = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
-        check = arm_check(ctx, rb, moved, frames)
-        after = near_clear_parts(src, measure_hands(ctx, rb, moved, src, p, frames, state, clear_only=True), rb.scale, p)
-        return replace(check, flagged=(after[frames] & ~near_before[frames]).flatten(1).any(dim=1))
+    def moved(weight: Tensor) -> Motion:
+        return apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
 
-    before = spread_check(arm_check(ctx, rb, motion, changed), motion.num_frames, ctx.target.num_vertices)
-    settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
-                                at_fps(cp.fallback_ramp, motion.fps))  # fmt: skip
-    check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
-    return check.weight
+    def new_near(out: Motion, frames: Tensor) -> Tensor:
+        after = near_clear_parts(src, measure_hands(ctx, rb, out, src, p, frames, state, clear_only=True), rb.scale, p)
+        return (after[frames] & ~near_before[frames]).flatten(1).any(dim=1)
+
+    return never_worse_weights(ctx, rb, motion, moved, changed, new_near)

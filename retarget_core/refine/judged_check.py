@@ -1,0 +1,73 @@
+"""The never-worse check of the stages that move arms after the collision stage (hand contacts, elbow swivel),
+with the arms' penetration read as the judge reads it (:func:`retarget_core.contacts.arm_depth.arm_penetration`
+on the judge's closed parts): where a changed frame got worse, the change is withdrawn smoothly
+(:mod:`retarget_core.refine.never_worse`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from retarget_core.contacts.arm_depth import arm_penetration
+from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_for_reach
+from retarget_core.context import RefineContext
+from retarget_core.metrics.depth import VertexDepths
+from retarget_core.motion import Motion
+from retarget_core.refine.collision_check import ContactInstances, FrameCheck
+from retarget_core.refine.collision_params import CollisionParams, at_fps
+from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
+
+ARM_DEPTH_CAP_M = 0.10  # arm vertices deeper than this in a part count at this depth (at 1.80 m)
+
+Flag = Callable[[Motion, Tensor], Tensor]  # (moved motion, frames (n,)) -> (n,) frames worse for another reason
+
+
+def arm_check(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, chunk: int = 64) -> FrameCheck:
+    """Both arms' penetration as the judge reads it (sampled arm vertices inside the parts it tests them against)
+    on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check: ``volume`` the sampled depths
+    times their samples' areas (m^3), ``max_depth`` the deepest, ``count`` how many."""
+    n = len(frames)
+    vol, mx, cnt = torch.zeros(n), torch.zeros(n), torch.zeros(n)
+    cap = ARM_DEPTH_CAP_M * rb.scale
+    for s in range(0, n, chunk):
+        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
+        for side in range(2):
+            c, d, t = arm_penetration(pp, side, cap)
+            cnt[s : s + chunk] += c
+            mx[s : s + chunk] = torch.maximum(mx[s : s + chunk], d.float())
+            vol[s : s + chunk] += t.float()
+    depth = VertexDepths.empty(n, ctx.target.num_vertices)
+    return FrameCheck(frames, vol, mx, cnt, depth, torch.zeros(0))
+
+
+def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> FrameCheck:
+    """``check`` as a check of every clip frame (zeros on the frames it did not measure: they never change)."""
+    vol, mx, cnt = torch.zeros(num_frames), torch.zeros(num_frames), torch.zeros(num_frames)
+    vol[check.frames], mx[check.frames], cnt[check.frames] = check.volume, check.max_depth, check.count
+    return FrameCheck(torch.arange(num_frames), vol, mx, cnt, VertexDepths.empty(num_frames, num_vertices), check.contact)
+
+
+def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved: Callable[[Tensor], Motion],
+                        changed: Tensor, flag: Flag | None = None) -> Tensor:  # fmt: skip
+    """``(F,)`` the share of a stage's change kept per frame: the collision stage's never-worse check on the
+    ``changed (n,)`` frames, with the arms' penetration as the judge reads it (:func:`arm_check`); ``moved(weight
+    (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse."""
+    cp = CollisionParams()
+    no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
+
+    def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
+        out = moved(weight)
+        check = arm_check(ctx, rb, out, frames)
+        return check if flag is None else replace(check, flagged=flag(out, frames))
+
+    before = spread_check(arm_check(ctx, rb, motion, changed), motion.num_frames, ctx.target.num_vertices)
+    settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
+                                at_fps(cp.fallback_ramp, motion.fps))  # fmt: skip
+    check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
+    return check.weight
+
+
+__all__ = ["arm_check", "never_worse_weights", "spread_check"]
