@@ -47,6 +47,8 @@ STAGES: tuple[StageInfo, ...] = (
               "retarget_core.refine.floor", 0.01),
     StageInfo("hand_contacts", "Hand contacts", "hands onto the parts they touch in the source, clear of the others",
               "retarget_core.refine.hand_contacts", 0.05),
+    StageInfo("arm_swivel", "Elbow swivel", "arms turned about the shoulder-wrist line out of the body, hands kept",
+              "retarget_core.refine.arm_swivel", 0.04),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
               "retarget_core.refine.fingers", 0.01),
 )  # fmt: skip

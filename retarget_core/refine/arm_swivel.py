@@ -1,0 +1,137 @@
+"""Elbow swivel: each arm turned about its shoulder-to-wrist axis, out of the body where the judge reads it inside
+(issue 22, item 3: the frames deeper than 1 cm left after the collision stage are upper arms at the front of a
+heavy chest or beside the armpit, on poses a joint rotation can change; docs/collisions.md).
+
+Why this move: turning the whole arm about the line from shoulder to wrist swings the elbow and keeps the wrist
+where it is, and the hand keeps its world rotation, so the hands (the end effectors the judge reads) and their
+contacts do not move. The collision stage cannot see most of these vertices inside (its rigid part SDFs read
+them outside), and the posed-mesh lever it has costs end-effector error (docs/collisions.md).
+
+1. Measure, per frame and arm, the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_pairs`): the
+   arm's sampled vertices inside or within ``near_m`` of a part the judge tests them against, and the legs'
+   vertices in or near the arm, each with its nearest surface point.
+2. Wanted angle: on a grid of angles, each pair's depth predicted by turning its arm point (or, for a leg vertex,
+   the arm's surface point) rigidly about the axis and reading its move along the direction that goes deeper
+   (a plane at the surface point); the cost ``sum relu((depth + margin_m) / 1 cm) ** 2`` plus ``turn_cost``
+   times the arm's whole turn squared (radians); the grid's least-cost angle.
+3. Smooth in time (:func:`retarget_core.refine.hand_contacts.weighted_smooth`: weight 1 where the arm is in the
+   body, ``free_weight`` elsewhere, toward no turn), ``passes`` measure-and-turn passes, then the never-worse
+   check on the judge's parts (:func:`retarget_core.refine.judged_check.never_worse_weights`).
+
+Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from retarget_core.contacts.arm_depth import arm_penetration
+from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_for_reach, reach_body
+from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
+from retarget_core.motion import Motion
+from retarget_core.refine.arms import Arm, arms_of, swivel_arms
+from retarget_core.refine.hand_contacts import weighted_smooth
+from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, never_worse_weights
+
+DEEP_M = 0.01  # ACCEPTANCE.md: frames > 1 cm (what the report counts)
+
+
+@dataclass(frozen=True)
+class SwivelParams:
+    """Lengths at a 1.80 m character."""
+
+    search_m: float = 0.005  # frames where an arm is deeper than this are searched for a turn
+    turns_deg: tuple[float, ...] = (-20.0, 20.0, -45.0, 45.0, -70.0, 70.0)  # the turns tried (smaller first)
+    smooth_seconds: float = 0.1  # the turns' smoothing in time (a Gaussian's standard deviation)
+    free_weight: float = 0.1  # a frame whose arm is not in the body: weakly toward no turn
+    chunk: int = 64  # frames posed together
+
+
+@dataclass
+class ArmFrames:
+    """Per frame and arm ``(F, 2)``: the wanted turn (radians), the smoothing weight, and whether a sampled arm
+    point is in the body (``inside``) or deeper than 1 cm (``deep``)."""
+
+    wanted: Tensor
+    weight: Tensor
+    inside: Tensor
+    deep: Tensor
+
+
+def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, side: int, chunk: int) -> Tensor:
+    """``(n,)`` the deepest sampled point of arm ``side``'s judged penetration (arm_penetration, without its
+    hand's points: a swivel keeps the hand) at clip ``frames (n,)`` of ``motion``."""
+    out = torch.zeros(len(frames), dtype=torch.float64)
+    for s in range(0, len(frames), chunk):
+        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
+        out[s : s + chunk] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
+    return out
+
+
+def repeated(motion: Motion, frames: Tensor, times: int) -> Motion:
+    """A motion of ``frames (n,)`` of ``motion`` repeated ``times`` times (``n * times`` frames)."""
+    idx = frames.repeat(times)
+    return Motion(motion.skeleton, motion.fps, motion.rotations[idx], motion.translations[idx], motion.name)
+
+
+def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], p: SwivelParams) -> ArmFrames:
+    """:class:`ArmFrames` of ``motion``: each arm's depth on every frame, and on the frames where it is deeper
+    than ``search_m`` the turn of :attr:`SwivelParams.turns` that makes it shallowest (the smaller turn on ties)."""
+    f_n = motion.num_frames
+    out = ArmFrames(torch.zeros(f_n, 2, dtype=torch.float64), torch.full((f_n, 2), p.free_weight, dtype=torch.float64),
+                    torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+    turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
+    for arm in arms:
+        depth = arm_depths(ctx, rb, motion, torch.arange(f_n), arm.side, p.chunk)
+        out.inside[:, arm.side], out.deep[:, arm.side] = depth > 0, depth > DEEP_M * rb.scale
+        out.weight[depth > 0, arm.side] = 1.0
+        search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
+        if len(search) == 0:
+            continue
+        angles = torch.zeros(len(search) * len(turns), 2, dtype=torch.float64)
+        angles[:, arm.side] = turns.repeat_interleave(len(search))
+        many = swivel_arms(repeated(motion, search, len(turns)), arms, angles)
+        tried = arm_depths(ctx, rb, many, torch.arange(len(angles)), arm.side, p.chunk).view(len(turns), -1)
+        tried = torch.cat([depth[search][None], tried])  # no turn first: kept unless a turn is shallower
+        best = tried.argmin(dim=0)
+        out.wanted[search, arm.side] = torch.cat([turns.new_zeros(1), turns])[best]
+    return out
+
+
+@computes_on_cpu
+def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) -> StageOutcome:
+    """Elbows swung out of the body, hands kept (module doc)."""
+    p = params or SwivelParams()
+    t0 = time.perf_counter()
+    arms = arms_of(ctx.target_mapping, ctx.target.skeleton.parents)
+    if not arms or motion.num_frames == 0:
+        return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm", "seconds": 0.0})
+    rb = reach_body(ctx.target, ctx.target_mapping)
+    first = measure_turns(ctx, rb, motion, arms, p)
+    turned = torch.stack([weighted_smooth(first.wanted[:, s : s + 1], first.weight[:, s], p.smooth_seconds * motion.fps)[:, 0]
+                          for s in range(2)], dim=1)  # fmt: skip
+    f_n = motion.num_frames
+    changed = torch.nonzero(turned.abs().amax(dim=1) > 1e-4).flatten()
+    share = torch.ones(f_n, dtype=torch.float64)
+    if len(changed):
+        share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed)
+    out = swivel_arms(motion, arms, turned * share[:, None])
+    return StageOutcome(out, _report(first, turned, share, changed, t0))
+
+
+def _report(first: ArmFrames, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
+    """The stage's figures: frames changed and withdrawn, the turns, and the input's frames with an arm in the
+    body (sampled points, as the judge's parts read them)."""
+    kept = (turned * share[:, None]).abs()
+    return {"frames_changed": len(changed), "withdrawn_frames": int((share[changed] < 1.0).sum()),
+            "max_turn_deg": round(math.degrees(float(kept.max())) if kept.numel() else 0.0, 1),
+            "mean_turn_deg": round(math.degrees(float(kept[changed].mean())) if len(changed) else 0.0, 2),
+            "frames_arm_inside_before": int(first.inside.any(dim=1).sum()),
+            "frames_arm_deeper_1cm_before": int(first.deep.any(dim=1).sum()),
+            "seconds": round(time.perf_counter() - t0, 3)}  # fmt: skip
