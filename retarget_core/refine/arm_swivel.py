@@ -7,16 +7,17 @@ where it is, and the hand keeps its world rotation, so the hands (the end effect
 contacts do not move. The collision stage cannot see most of these vertices inside (its rigid part SDFs read
 them outside), and the posed-mesh lever it has costs end-effector error (docs/collisions.md).
 
-1. Measure, per frame and arm, the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_pairs`): the
-   arm's sampled vertices inside or within ``near_m`` of a part the judge tests them against, and the legs'
-   vertices in or near the arm, each with its nearest surface point.
-2. Wanted angle: on a grid of angles, each pair's depth predicted by turning its arm point (or, for a leg vertex,
-   the arm's surface point) rigidly about the axis and reading its move along the direction that goes deeper
-   (a plane at the surface point); the cost ``sum relu((depth + margin_m) / 1 cm) ** 2`` plus ``turn_cost``
-   times the arm's whole turn squared (radians); the grid's least-cost angle.
+1. Measure, per frame and arm, the deepest of its sampled vertices (not its hand's) inside a part the judge tests
+   it against, and of the legs' vertices inside it, on the judge's closed parts
+   (:func:`retarget_core.contacts.arm_depth.arm_penetration`).
+2. Search: where an arm is deeper than ``search_m``, each turn of ``turns_deg`` is posed and measured the same
+   way; the shallowest wins (no turn on ties, then the smaller turn). A search, not a gradient step: a local
+   (plane) model of the depth, tried first, got a third of the gain, since a deep elbow often has to swing
+   30 to 70 degrees round the chest to come out.
 3. Smooth in time (:func:`retarget_core.refine.hand_contacts.weighted_smooth`: weight 1 where the arm is in the
-   body, ``free_weight`` elsewhere, toward no turn), ``passes`` measure-and-turn passes, then the never-worse
-   check on the judge's parts (:func:`retarget_core.refine.judged_check.never_worse_weights`).
+   body, ``free_weight`` elsewhere, toward no turn), then the never-worse check on the judge's parts
+   (:func:`retarget_core.refine.judged_check.never_worse_weights`): a frame whose judged arm penetration grew is
+   withdrawn smoothly.
 
 Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
 """
@@ -64,13 +65,15 @@ class ArmFrames:
     deep: Tensor
 
 
-def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, side: int, chunk: int) -> Tensor:
-    """``(n,)`` the deepest sampled point of arm ``side``'s judged penetration (arm_penetration, without its
-    hand's points: a swivel keeps the hand) at clip ``frames (n,)`` of ``motion``."""
-    out = torch.zeros(len(frames), dtype=torch.float64)
+def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, sides: list[int],
+               chunk: int) -> Tensor:  # fmt: skip
+    """``(n, 2)`` the deepest sampled point of each of arms ``sides``' judged penetration (arm_penetration,
+    without its hand's points: a swivel keeps the hand; 0 for the other side) at clip ``frames (n,)``."""
+    out = torch.zeros(len(frames), 2, dtype=torch.float64)
     for s in range(0, len(frames), chunk):
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
-        out[s : s + chunk] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
+        for side in sides:
+            out[s : s + chunk, side] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
     return out
 
 
@@ -82,13 +85,14 @@ def repeated(motion: Motion, frames: Tensor, times: int) -> Motion:
 
 def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], p: SwivelParams) -> ArmFrames:
     """:class:`ArmFrames` of ``motion``: each arm's depth on every frame, and on the frames where it is deeper
-    than ``search_m`` the turn of :attr:`SwivelParams.turns` that makes it shallowest (the smaller turn on ties)."""
+    than ``search_m`` the turn of ``turns_deg`` that makes it shallowest (no turn, then the smaller, on ties)."""
     f_n = motion.num_frames
     out = ArmFrames(torch.zeros(f_n, 2, dtype=torch.float64), torch.full((f_n, 2), p.free_weight, dtype=torch.float64),
                     torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
     turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
+    depths = arm_depths(ctx, rb, motion, torch.arange(f_n), [arm.side for arm in arms], p.chunk)
     for arm in arms:
-        depth = arm_depths(ctx, rb, motion, torch.arange(f_n), arm.side, p.chunk)
+        depth = depths[:, arm.side]
         out.inside[:, arm.side], out.deep[:, arm.side] = depth > 0, depth > DEEP_M * rb.scale
         out.weight[depth > 0, arm.side] = 1.0
         search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
@@ -97,7 +101,7 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
         angles = torch.zeros(len(search) * len(turns), 2, dtype=torch.float64)
         angles[:, arm.side] = turns.repeat_interleave(len(search))
         many = swivel_arms(repeated(motion, search, len(turns)), arms, angles)
-        tried = arm_depths(ctx, rb, many, torch.arange(len(angles)), arm.side, p.chunk).view(len(turns), -1)
+        tried = arm_depths(ctx, rb, many, torch.arange(len(angles)), [arm.side], p.chunk)[:, arm.side].view(len(turns), -1)
         tried = torch.cat([depth[search][None], tried])  # no turn first: kept unless a turn is shallower
         best = tried.argmin(dim=0)
         out.wanted[search, arm.side] = torch.cat([turns.new_zeros(1), turns])[best]
