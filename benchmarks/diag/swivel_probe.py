@@ -58,6 +58,9 @@ def main() -> None:
     depth = torch.stack([arm_swivel.arm_depths(ctx, rb, swivel_arms(chain, arms, torch.full((len(frames), 2), math.radians(g),
                          dtype=torch.float64)), frames, [0, 1], 64) for g in GRID_DEG])  # fmt: skip
     best = torch.tensor(GRID_DEG, dtype=torch.float64)[depth.argmin(dim=0)]  # (F, 2) degrees
+    turned = best[best != 0].abs()
+    print(f"turned arm-frames {len(turned)} of {best.numel()}, of them 45 degrees or more: "
+          f"{float((turned >= 45).double().mean()) * 100 if len(turned) else 0:.0f} %")
     report("best per frame", swivel_arms(chain, arms, torch.deg2rad(best)))
     weight = torch.where(best != 0, 1.0, 0.2).double()
     smooth = torch.stack([weighted_smooth(torch.deg2rad(best[:, s : s + 1]), weight[:, s], 0.1 * chain.fps)[:, 0]
