@@ -22,7 +22,7 @@ from retarget_core.motion import Motion
 from retarget_core.pipeline import refine, refine_context
 from retarget_core.refine import arm_swivel
 from retarget_core.refine.arms import arms_of, swivel_arms
-from retarget_core.refine.hand_contacts import weighted_smooth
+from retarget_core.refine.temporal import weighted_smooth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
 from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402

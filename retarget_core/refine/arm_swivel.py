@@ -14,7 +14,7 @@ them outside), and the posed-mesh lever it has costs end-effector error (docs/co
    way; the shallowest wins (no turn on ties, then the smaller turn). A search, not a gradient step: a local
    (plane) model of the depth, tried first, got a third of the gain, since a deep elbow often has to swing
    30 to 70 degrees round the chest to come out.
-3. Smooth in time (:func:`retarget_core.refine.hand_contacts.weighted_smooth`: weight 1 where the arm is in the
+3. Smooth in time (:func:`retarget_core.refine.temporal.weighted_smooth`: weight 1 where the arm is in the
    body, ``free_weight`` elsewhere, toward no turn), then the never-worse check on the judge's parts
    (:func:`retarget_core.refine.judged_check.never_worse_weights`): a frame whose judged arm penetration grew is
    withdrawn smoothly.
@@ -37,8 +37,8 @@ from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_for_r
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of, swivel_arms
-from retarget_core.refine.hand_contacts import weighted_smooth
 from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, never_worse_weights
+from retarget_core.refine.temporal import weighted_smooth
 
 DEEP_M = 0.01  # ACCEPTANCE.md: frames > 1 cm (what the report counts)
 

@@ -40,6 +40,7 @@ from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of
 from retarget_core.refine.judged_check import never_worse_weights
 from retarget_core.refine.judged_contacts import source_hand_distances
+from retarget_core.refine.temporal import weighted_smooth
 from retarget_core.refine.two_bone_ik import two_bone_ik
 from retarget_core.skeleton import subtree
 
@@ -177,22 +178,6 @@ def contact_figures(src: Tensor, state: HandState, scale: float, p: HandContactP
     n_t, n_f = int(touch.sum()), int(far.sum())
     return {"source_contacts": n_t, "preservation": round(float((d[touch] < KEPT_M).double().mean()), 4) if n_t else None,
             "false_contacts": round(float((d[far] < FALSE_M).double().mean()), 4) if n_f else None}  # fmt: skip
-
-
-def weighted_smooth(wanted: Tensor, weight: Tensor, sigma: float) -> Tensor:
-    """``(F, C)`` the wanted curves ``(F, C)`` smoothed in time by a normalised Gaussian convolution: at each frame
-    the ``weight (F,)``-weighted mean of the wanted values around it (standard deviation ``sigma`` frames). A
-    weighted mean never overshoots the wanted values (no ringing before or after a span), and it is as smooth as
-    the Gaussian."""
-    if sigma <= 0 or wanted.shape[0] < 2:
-        return wanted.clone()
-    radius = max(1, int(round(3.0 * sigma)))
-    t = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    kernel = torch.exp(-0.5 * (t / sigma) ** 2)[None, None, :]
-    w = weight.double()[None, None, :]
-    num = torch.nn.functional.conv1d((wanted.double() * weight.double()[:, None]).T[:, None, :], kernel, padding=radius)
-    den = torch.nn.functional.conv1d(w, kernel, padding=radius)
-    return (num[:, 0, :] / den[0].clamp_min(1e-12)).T.to(wanted.dtype)
 
 
 def smooth_moves(move: Tensor, weight: Tensor, sigma: float) -> Tensor:

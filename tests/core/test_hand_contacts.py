@@ -26,8 +26,9 @@ from retarget_core.metrics.acceptance import measure_pose
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, PARTS
 from retarget_core.motion import Motion
 from retarget_core.refine import hand_contacts
-from retarget_core.refine.hand_contacts import apply_moves, arms_of, weighted_smooth
-from retarget_core.refine.temporal import smoothstep
+from retarget_core.refine.arms import arms_of
+from retarget_core.refine.hand_contacts import apply_moves
+from retarget_core.refine.temporal import smoothstep, weighted_smooth
 
 FRAMES = 40
 LEFT, RIGHT = 0, 1
