@@ -32,35 +32,35 @@ class StageInfo:
 
 STAGES: tuple[StageInfo, ...] = (
     StageInfo("contacts", "Contacts", "hand self-contacts and planted feet found on the source, carried to the target",
-              None, 0.12),
+              None, 0.06),
     StageInfo("recurrent", "Recurrent network", "geometry-conditioned retargeting network",
-              "retarget_core.refine.recurrent", 0.05),
+              "retarget_core.refine.recurrent", 0.02),
     StageInfo("eso", "Encoder-space optimisation", "test-time refinement of the network's states",
-              "retarget_core.refine.eso", 0.1, options=("eso_iterations",)),
+              "retarget_core.refine.eso", 0.07, options=("eso_iterations",)),
     StageInfo("learned_collisions", "Learned collision resolver", "paper 2's per-limb network turns limbs out of the body",
               "retarget_core.refine.collision_model", 0.05, default=False),
     StageInfo("collisions", "Collision resolution", "limbs out of the body by part SDFs, contacts kept",
-              "retarget_core.refine.collisions", 0.17),
+              "retarget_core.refine.collisions", 0.25),
     StageInfo("foot_lock", "Foot lock", "planted feet held in place by two-bone IK",
-              "retarget_core.refine.foot_lock", 0.03),
+              "retarget_core.refine.foot_lock", 0.01),
     StageInfo("floor", "Floor", "the body lifted, with least jerk, where it sinks below the floor",
               "retarget_core.refine.floor", 0.01),
     StageInfo("hand_contacts", "Hand contacts", "hands onto the parts they touch in the source, clear of the others",
-              "retarget_core.refine.hand_contacts", 0.05),
+              "retarget_core.refine.hand_contacts", 0.1),
     StageInfo("arm_swivel", "Elbow swivel", "arms turned about the shoulder-wrist line out of the body, hands kept",
-              "retarget_core.refine.arm_swivel", 0.04),
+              "retarget_core.refine.arm_swivel", 0.25),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
               "retarget_core.refine.fingers", 0.01),
 )  # fmt: skip
 """Why each default stands: docs/results.md (the held-out evaluation of the default chain and its variants)."""
 
-PREPARE_STEPS: dict[str, float] = {"read": 0.08, "copy": 0.04, "body": 0.06}
+PREPARE_STEPS: dict[str, float] = {"read": 0.04, "copy": 0.02, "body": 0.03}
 """The pipeline's fixed steps before the refinement stages, with their share of a job's time."""
 
 PREPARE_ORDER: tuple[str, ...] = ("read", "copy", "contacts", "body")
 """What :func:`retarget_core.pipeline.prepare` runs, in order (``contacts`` is a switchable stage)."""
 
-FINISH_STEPS: dict[str, float] = {"metrics": 0.19, "write": 0.09}
+FINISH_STEPS: dict[str, float] = {"metrics": 0.1, "write": 0.03}
 """The fixed steps after the refinement stages, with their share of a job's time."""
 
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
