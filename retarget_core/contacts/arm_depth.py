@@ -51,7 +51,9 @@ def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[T
     if closed is None or len(pts) == 0:
         return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
     at = pp.posed[:, pts]  # (n, K, 3)
-    f, k = _in_box(pp, at, closed.vertices, 0.0)
+    own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
+    lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+    f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
     got = pp.get(name) if len(f) else None
     if got is None:
         return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
@@ -60,14 +62,6 @@ def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[T
     f, k = f[inside], k[inside]
     d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
     return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
-
-
-def _in_box(pp: PosedParts, at: Tensor, part_vertices, margin: float) -> tuple[Tensor, Tensor]:
-    """``(frame, index)`` of the points ``at (n, K, 3)`` within ``margin`` of the part's posed box (its tree's
-    root box: the caps lie within it)."""
-    own = pp.posed[:, torch.from_numpy(part_vertices)]
-    lo, hi = own.amin(dim=1)[:, None] - margin, own.amax(dim=1)[:, None] + margin
-    return torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
 
 
 __all__ = ["arm_penetration"]

@@ -47,15 +47,6 @@ def arms_of(mapping: JointMapping, parents: list[int]) -> list[Arm]:
     return out
 
 
-def swinging_joints(arm: Arm, parents: list[int]) -> list[int]:
-    """The joints an elbow swivel turns with the arm: the upper arm's subtree without the hand's and the
-    followers' (those keep their world rotation)."""
-    kept = set(subtree(parents, arm.hand))
-    for j in arm.followers:
-        kept |= set(subtree(parents, j))
-    return [j for j in subtree(parents, arm.upper) if j not in kept]
-
-
 def about_axis(axis: Tensor, angle: Tensor) -> Tensor:
     """Quaternions ``(..., 4)`` turning by ``angle (...)`` radians about unit ``axis (..., 3)``."""
     half = angle[..., None] / 2
@@ -84,4 +75,4 @@ def swivel_arms(motion: Motion, arms: list[Arm], angles: Tensor) -> Motion:
     return Motion(sk, motion.fps, local, motion.translations.clone(), motion.name)
 
 
-__all__ = ["Arm", "about_axis", "arms_of", "swinging_joints", "swivel_arms"]
+__all__ = ["Arm", "about_axis", "arms_of", "swivel_arms"]
