@@ -1,5 +1,5 @@
 """Hand contacts as the judge reads them: a hand that touches a part in the source rests on that part's surface on
-the target, and a hand that is clear of the body in the source stays clear (issue 22, item 2).
+the target (not inside it), and a hand that is clear of the body in the source stays clear (issue 22, items 2, 3).
 
 Why: the stages before this one hold contacts through rigid part SDFs and vertex pairs carried from the source.
 On stylised characters (a dress skinned across hips and legs, a big rigid head, short arms) those read a contact
@@ -11,8 +11,9 @@ moved by its wrist, with the arm's two-bone IK keeping the elbow's swivel and th
 1. Wanted moves ``(F, 2, 3)``: per frame and hand, for each part the judge tests it against (head, torso, the
    other arm, the legs), toward the part where the source touches it (within ``contact_m``) and the result is
    farther than ``lost_m``, to ``goal_m`` from it, along the closest pair; away from it where the source is far
-   (beyond ``far_m``) and the result is within ``clear_m``, to ``clear_m``; the parts' moves summed, at most
-   ``max_move_m``.
+   (beyond ``far_m``) and the result is within ``clear_m``, to ``clear_m``; out of a part the hand is deeper
+   than ``out_m`` in, to its surface (a hand pressed into a bigger thigh or belly: the judge counts its vertices;
+   :mod:`retarget_core.contacts.hand_depth`); the parts' moves summed, at most ``max_move_m``.
 2. Smooth in time: per hand, a weighted Gaussian mean of the wanted moves (weight 1 where a move is wanted,
    ``hold_weight`` where a touching hand is near enough and is not to be pressed in, ``free_weight`` elsewhere):
    a weighted mean never overshoots, and it is as smooth as the Gaussian whatever the weights.
@@ -33,7 +34,8 @@ import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
-from retarget_core.contacts.hand_reach import Reach, ReachBody, hand_reach, posed_for_reach, reach_body
+from retarget_core.contacts.hand_depth import HandDepth, hand_depths
+from retarget_core.contacts.hand_reach import PosedParts, Reach, ReachBody, hand_reach, posed_for_reach, reach_body
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
 from retarget_core.motion import Motion
@@ -64,6 +66,8 @@ class HandContactParams:
     hold_weight: float = 3.0  # a touching hand already near its part: firmly no move (moves nearby barely spread)
     passes: int = 2  # measure-and-move passes
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
+    out_m: float = 0.005  # a hand deeper than this in a part is moved out to its surface [frames > 1 cm]
+    depth_cap_m: float = 0.08  # ... read up to this depth (deeper: the hand is in another pose, not pressed in)
 
 
 def contact_groups(side: int) -> list[list[int]]:
@@ -149,11 +153,25 @@ def _keep_nearest(state: HandState, f: Tensor, h: Tensor, g: Tensor, r: Reach) -
     state.surface_point[f[k], h[k], g[k]] = r.surface_point[k]
 
 
-def wanted_moves(src: Tensor, state: HandState, scale: float, p: HandContactParams) -> tuple[Tensor, Tensor]:
+def measure_inside(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, p: HandContactParams,
+                   depth: HandDepth | None = None, chunk: int = 64) -> HandDepth:  # fmt: skip
+    """The hands' :class:`HandDepth` at clip ``frames (n,)``, written into a copy of ``depth`` (every clip frame;
+    the others keep their figures)."""
+    out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
+    for s in range(0, len(frames), chunk):
+        fr = frames[s : s + chunk]
+        got = hand_depths(PosedParts(rb, posed_for_reach(rb, ctx.target, motion, fr)), p.depth_cap_m * rb.scale)
+        out.depth[fr], out.hand_point[fr], out.surface_point[fr] = got.depth, got.hand_point, got.surface_point
+    return out
+
+
+def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
+                 p: HandContactParams) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Wrist moves ``(F, 2, 3)`` (body scale) toward the parts the source touches and away from those it stays
-    clear of (module doc, step 1), and ``(F, 2)`` how much each frame's move counts in the smoothing: ``hold_weight``
-    where a touching hand is near enough (no move: it is not pressed in), 1 where a move is wanted,
-    ``free_weight`` elsewhere; ``scale``: body lengths per length at 1.80 m."""
+    clear of (module doc, step 1), and out of the parts a hand is deeper than ``out_m`` in (``inside``), and
+    ``(F, 2)`` how much each frame's move counts in the smoothing: ``hold_weight`` where a touching hand is near
+    enough (no move: it is not pressed in), 1 where a move is wanted, ``free_weight`` elsewhere; ``scale``: body
+    lengths per length at 1.80 m."""
     d = state.distance / scale
     gap = state.surface_point - state.hand_point
     unit = torch.nan_to_num(gap / gap.norm(dim=-1, keepdim=True).clamp_min(1e-12))
@@ -162,11 +180,13 @@ def wanted_moves(src: Tensor, state: HandState, scale: float, p: HandContactPara
     push = (src > p.far_m) & (d > 0.0) & (d < p.clear_m)
     step = torch.where(pull, d - p.goal_m, torch.where(push, d - p.clear_m, torch.zeros_like(d)))
     move = (unit * torch.nan_to_num(step * scale)[..., None]).sum(dim=2)  # (F, 2, 3)
+    deep = (inside.depth > p.out_m * scale).any(dim=2)
+    move = move + inside.out_moves(p.out_m * scale)
     size = move.norm(dim=-1, keepdim=True)
     limit = p.max_move_m * scale
     weight = torch.full(move.shape[:2], p.free_weight, dtype=torch.float64)
-    weight = torch.where((pull | push).any(dim=2), 1.0, weight)
-    weight = torch.where((touch & ~pull).any(dim=2), p.hold_weight, weight)
+    weight = torch.where((pull | push).any(dim=2) | deep, 1.0, weight)
+    weight = torch.where((touch & ~pull).any(dim=2) & ~deep, p.hold_weight, weight)
     return move * (limit / size.clamp_min(limit)), weight
 
 
@@ -227,16 +247,20 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm with a hand mesh", "seconds": 0.0})
     src = source_groups(ctx)
     state = first = measure_hands(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
+    inside = measure_inside(ctx, rb, motion, torch.arange(motion.num_frames), p)
+    deep_before = int((inside.depth > p.out_m * rb.scale).any(dim=2).any(dim=1).sum())
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
     for _ in range(p.passes):
-        want, weight = wanted_moves(src, state, rb.scale, p)
+        want, weight = wanted_moves(src, state, inside, rb.scale, p)
         if float(want.abs().max()) == 0.0:
             break
         step = smooth_moves(want, weight, p.smooth_seconds * motion.fps)
         total = total + step
         again = torch.nonzero(step.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
-        state = measure_hands(ctx, rb, apply_moves(motion, arms, total, p.max_reach), src, p, again, state)
+        moved_motion = apply_moves(motion, arms, total, p.max_reach)
+        state = measure_hands(ctx, rb, moved_motion, src, p, again, state)
+        inside = measure_inside(ctx, rb, moved_motion, again, p, inside)
     moved = contact_figures(src, state, rb.scale, p)
     changed = torch.nonzero(total.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
     weight = (never_worse_share(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)
@@ -246,7 +270,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     after = contact_figures(src, measure_hands(ctx, rb, out, src, p, withdrawn, state), rb.scale, p)
     report = {"frames_changed": len(changed), "withdrawn_frames": len(withdrawn),
               "max_move_cm": round(float(total.norm(dim=-1).max()) / rb.scale * 100.0, 2),
-              "source_contacts": before["source_contacts"],
+              "source_contacts": before["source_contacts"], "frames_hand_in_body_before": deep_before,
               **{f"{k}_{when}": figures[k] for when, figures in (("before", before), ("moved", moved), ("after", after))
                  for k in ("preservation", "false_contacts")},
               "seconds": round(time.perf_counter() - t0, 3)}  # fmt: skip

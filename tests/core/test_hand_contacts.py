@@ -1,6 +1,6 @@
 """The hand contact stage on a real body (the skinny sample) with built poses, measured as the judge measures
 (:func:`retarget_core.metrics.acceptance.measure_pose`): a hand that rests on its thigh in the source and is
-lifted 5 cm off it on the target is put back on it; a hand clear of the body in the source that the target
+lifted 5 cm off it on the target is put back on it; one pressed 2.5 cm into it is moved out to its surface; a hand clear of the body in the source that the target
 brings within a centimetre of the torso is moved clear of it; an arm with nothing to keep or avoid keeps its
 rotations bit for bit; the moves' smoothing in time follows the wanted moves where they are defined and never overshoots them."""
 
@@ -123,6 +123,31 @@ def test_a_hand_lifted_off_its_thigh_is_put_back_and_an_idle_arm_is_untouched(sk
     assert out.report["preservation_after"] > out.report["preservation_before"]
     right = [mapping.joints[n] for n in ("RightArm", "RightForeArm", "RightHand")]
     assert torch.equal(out.motion.rotations[:, right], target.rotations[:, right])
+
+
+def _hand_depth(ch: Character, mapping: JointMapping, motion: Motion, frames: list[int]) -> np.ndarray:
+    """``(n,)`` the judge's deepest counted left-hand vertex (m) at ``frames``."""
+    grot, gpos = motion.global_transforms()
+    hand = reach_body(ch, mapping).body.hand_vertices["left"]
+    with torch.no_grad():
+        posed = ch.pose_vertices(grot[frames], gpos[frames]).double().numpy()
+    return np.stack([measure_pose(ch, mapping, p).depth[hand].max() for p in posed])
+
+
+def test_a_hand_pressed_into_its_thigh_is_moved_out_to_the_surface(skinny) -> None:  # type: ignore[no-untyped-def]
+    ch, mapping, rb = skinny
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    legs = CONTACT_PARTS.index("legs")
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    inward = torch.tensor([-side * 0.03, 0.0, 0.0], dtype=torch.float64)  # into the thigh
+    target = _lifted(source, mapping, LEFT, inward)
+    pressed = _hand_depth(ch, mapping, target, list(range(10, 30, 4)))
+    assert (pressed > 0.015).all()  # deeper than 1 cm as the judge reads it
+    out = hand_contacts.run(_context(ch, mapping, source, target), target)
+    assert out.report["frames_hand_in_body_before"] >= 20
+    after = _hand_depth(ch, mapping, out.motion, list(range(12, 28, 2)))
+    assert (after < 0.01).all()
+    assert (_judged(ch, mapping, out.motion, list(range(12, 28, 4)))[:, LEFT, legs] < 0.025).all()  # still touching
 
 
 def test_a_hand_clear_in_the_source_is_moved_clear_of_the_torso(skinny) -> None:  # type: ignore[no-untyped-def]
