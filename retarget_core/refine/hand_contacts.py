@@ -181,13 +181,25 @@ def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
     step = torch.where(pull, d - p.goal_m, torch.where(push, d - p.clear_m, torch.zeros_like(d)))
     move = (unit * torch.nan_to_num(step * scale)[..., None]).sum(dim=2)  # (F, 2, 3)
     deep = (inside.depth > p.out_m * scale).any(dim=2)
-    move = move + inside.out_moves(p.out_m * scale)
+    move = move + kept_touching(inside.out_moves(p.out_m * scale), unit, touch, torch.nan_to_num((p.goal_m - d) * scale))
     size = move.norm(dim=-1, keepdim=True)
     limit = p.max_move_m * scale
     weight = torch.full(move.shape[:2], p.free_weight, dtype=torch.float64)
     weight = torch.where((pull | push).any(dim=2) | deep, 1.0, weight)
     weight = torch.where((touch & ~pull).any(dim=2) & ~deep, p.hold_weight, weight)
     return move * (limit / size.clamp_min(limit)), weight
+
+
+def kept_touching(out: Tensor, toward: Tensor, touch: Tensor, slack: Tensor) -> Tensor:
+    """``out (F, 2, 3)`` moves out of parts, with the part of them away from a part the hand touches (``touch
+    (F, 2, 4)``; ``toward (F, 2, 4, 3)`` the unit way to it, zero where the hand is in it) cut to ``slack (F, 2,
+    4)``, how far it may go before the contact is lost: a hand at the crease of thigh and belly slides out of the
+    thigh along the belly it rests on, not off it."""
+    for g in range(toward.shape[2]):
+        u = toward[:, :, g] * touch[:, :, g, None]
+        away = (out * u).sum(dim=-1, keepdim=True)
+        out = out - u * (away + slack[:, :, g, None].clamp_min(0.0)).clamp_max(0.0)
+    return out
 
 
 def contact_figures(src: Tensor, state: HandState, scale: float, p: HandContactParams) -> dict[str, Any]:

@@ -150,6 +150,20 @@ def test_a_hand_pressed_into_its_thigh_is_moved_out_to_the_surface(skinny) -> No
     assert (_judged(ch, mapping, out.motion, list(range(12, 28, 4)))[:, LEFT, legs] < 0.025).all()  # still touching
 
 
+def test_a_move_out_of_a_part_keeps_the_contact_the_hand_rests_on() -> None:
+    out = torch.zeros(1, 2, 3, dtype=torch.float64)
+    out[0, LEFT] = torch.tensor([0.03, 0.02, 0.0])  # out of the thigh: 3 cm away from the belly, 2 cm along it
+    toward = torch.zeros(1, 2, 4, 3, dtype=torch.float64)
+    toward[0, LEFT, 1] = torch.tensor([-1.0, 0.0, 0.0])  # the belly (torso) lies at -x
+    touch = torch.zeros(1, 2, 4, dtype=torch.bool)
+    touch[0, LEFT, 1] = True
+    slack = torch.full((1, 2, 4), 0.01, dtype=torch.float64)  # 1 cm more and the contact is lost
+    kept = hand_contacts.kept_touching(out, toward, touch, slack)[0, LEFT]
+    assert torch.allclose(kept, torch.tensor([0.01, 0.02, 0.0], dtype=torch.float64))
+    touch[:] = False  # nothing touched: the move is left as it is
+    assert torch.equal(hand_contacts.kept_touching(out, toward, touch, slack), out)
+
+
 def test_a_hand_clear_in_the_source_is_moved_clear_of_the_torso(skinny) -> None:  # type: ignore[no-untyped-def]
     ch, mapping, rb = skinny
     source = _rest(ch)
