@@ -16,6 +16,8 @@ from retarget_core.metrics.acceptance_body import HANDS, LIMB_TESTS
 
 EMPTY = torch.zeros(0, dtype=torch.long)
 
+Hits = list[tuple[Tensor, Tensor, Tensor, Tensor, bool]]  # per test: frame, point, depth (N,), areas (K,), on the arm
+
 
 def arm_penetration(pp: PosedParts, side: int, max_depth: float,
                     with_hand: bool = True) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
@@ -23,11 +25,36 @@ def arm_penetration(pp: PosedParts, side: int, max_depth: float,
     (``with_hand``: its hand's too) inside a part the judge tests it against, and the legs' sampled vertices
     inside it. How many, the deepest, and their volume (each depth times its vertex's area; deeper than
     ``max_depth``: counted at it)."""
-    n = pp.posed.shape[0]
-    count, deepest, total = torch.zeros(n), torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
     arm_n = len(pp.rb.arm_points[side]) if with_hand else pp.rb.arm_cells[side]
-    for pts, area, name in _tests(pp, side, arm_n):
-        f, k, d = _inside(pp, torch.from_numpy(pts), name, max_depth)
+    return _figures(pp.posed.shape[0], _hits(pp, side, arm_n, max_depth))
+
+
+def arm_penetration_and_depth(pp: PosedParts, side: int,
+                              max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:  # fmt: skip
+    """:func:`arm_penetration` with the hand, and ``(n,)`` the deepest without it (``with_hand=False``'s), from
+    one search: each point's depth does not depend on the points searched with it, so both are the same as
+    two calls."""
+    cells = pp.rb.arm_cells[side]
+    hits = _hits(pp, side, len(pp.rb.arm_points[side]), max_depth)
+    no_hand: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) if on_arm else (f, k, d, area, on_arm)
+                     for f, k, d, area, on_arm in hits]  # fmt: skip
+    n = pp.posed.shape[0]
+    return _figures(n, hits), _figures(n, no_hand)[1]
+
+
+def _hits(pp: PosedParts, side: int, arm_n: int, max_depth: float) -> Hits:
+    """Per test of arm ``side`` (:func:`_tests`): the points inside, as :func:`_inside` gives them ``(f, k, d)``,
+    their points' ``area (K,)``, and whether the points are the arm's (not a leg's)."""
+    out = []
+    for pts, area, name, on_arm in _tests(pp, side, arm_n):
+        out.append((*_inside(pp, torch.from_numpy(pts), name, max_depth), area, on_arm))
+    return out
+
+
+def _figures(n: int, hits: Hits) -> tuple[Tensor, Tensor, Tensor]:
+    """``(n,)`` how many points of ``hits`` (:func:`_hits`) are inside, the deepest and their volume."""
+    count, deepest, total = torch.zeros(n), torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
+    for f, k, d, area, _ in hits:
         if len(f):
             count.index_add_(0, f, torch.ones(len(f)))
             total.index_add_(0, f, d * area[k])
@@ -36,12 +63,12 @@ def arm_penetration(pp: PosedParts, side: int, max_depth: float,
 
 
 def _tests(pp: PosedParts, side: int, arm_n: int) -> list[tuple]:
-    """What arm ``side``'s penetration is read on: ``(points, areas, part)``: the first ``arm_n`` of its sampled
-    points against each part the judge tests the arm against, and each leg's points against the arm."""
+    """What arm ``side``'s penetration is read on: ``(points, areas, part, on_arm)``: the first ``arm_n`` of its
+    sampled points against each part the judge tests the arm against, and each leg's points against the arm."""
     arm = f"{HANDS[side]}_arm"
     pts, area = pp.rb.arm_points[side][:arm_n], pp.rb.arm_area[side][:arm_n]
-    tests = [(pts, area, name) for name in LIMB_TESTS[arm]]
-    return tests + [(p, a, arm) for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]
+    tests = [(pts, area, name, True) for name in LIMB_TESTS[arm]]
+    return tests + [(p, a, arm, False) for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]
 
 
 def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -51,17 +78,15 @@ def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[T
     if closed is None or len(pts) == 0:
         return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
     at = pp.posed[:, pts]  # (n, K, 3)
-    own = pp.posed[:, torch.from_numpy(closed.vertices)]  # its box is its tree's root box (caps lie within)
-    lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+    lo, hi = pp.box(name)
     f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
-    got = pp.get(name) if len(f) else None
-    if got is None:
+    if len(f) == 0:
         return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
-    tree, boxes = pp.rb.trees[name], got[1]
+    tree, boxes = pp.rb.trees[name], pp.tree_boxes(name, torch.unique(f))
     inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
     f, k = f[inside], k[inside]
     d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
     return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
 
 
-__all__ = ["arm_penetration"]
+__all__ = ["arm_penetration", "arm_penetration_and_depth"]

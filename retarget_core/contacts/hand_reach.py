@@ -6,12 +6,17 @@ dominant joint), searched through one triangle tree per part refit to every fram
 (:mod:`retarget_core.geometry.triangle_bvh`). A hand is sampled one vertex per ``cell_m`` cell of its rest pose
 (1 cm: the distance is within a few millimetres of the judge's, which reads every hand vertex); a sampled vertex
 inside the part makes the distance 0. Lengths in metres on the body's own scale.
+
+:class:`PosedParts` (the parts of a chunk of frames, each tree refit on the frames a query needs) is shared with
+the arms' penetration (:mod:`retarget_core.contacts.arm_depth`); :class:`MovedParts` reads the same frames moved
+several ways (the elbow swivel's turns), posing and refitting again only what moved (:func:`posed_moved`), equal
+to posing and refitting everything.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -28,6 +33,7 @@ from retarget_core.geometry.triangle_bvh import (
     build_bvh,
     closest_triangles,
     refit,
+    refit_changed,
     winding_numbers,
 )
 from retarget_core.metrics.acceptance_body import (
@@ -125,22 +131,182 @@ _CACHE: OrderedDict[str, ReachBody] = OrderedDict()
 
 
 class PosedParts:
-    """The parts of one chunk of posed frames ``posed (n, V, 3)``: each part's posed closed mesh and its refit tree
-    boxes, made the first time a part is asked for."""
+    """The parts of one chunk of posed frames ``posed (n, V, 3)``: each part's posed closed mesh, its refit tree
+    boxes and the box of its own vertices, made the first time a part is asked for."""
 
     def __init__(self, rb: ReachBody, posed: Tensor) -> None:
         self.rb, self.posed = rb, posed.double()
         self._done: dict[str, tuple[Tensor, PosedBoxes]] = {}
+        self._some: dict[str, PosedBoxes] = {}  # trees refit on some of the frames (rows -1: not yet)
+        self._boxes: dict[tuple[str, bytes], tuple[Tensor, Tensor]] = {}
+        self._parent: tuple[PosedParts, Tensor] | None = None
+
+    def frames(self, idx: Tensor) -> PosedParts:
+        """These parts on the chunk's frames ``idx (m,)``: what is already made here is sliced, not made again."""
+        out = PosedParts(self.rb, self.posed[idx])
+        out._parent = (self, idx)
+        return out
 
     def get(self, name: str) -> tuple[Tensor, PosedBoxes] | None:
         """``(local (n, N + L, 3), boxes)`` of part ``name`` (None when the body has no such part)."""
         closed = self.rb.body.part(name)
+        return None if closed is None else self._whole(name, closed)
+
+    def tree_boxes(self, name: str, frames: Tensor) -> PosedBoxes:
+        """Part ``name``'s tree boxes, refit on (at least) the chunk's frames ``frames (k,)`` (sorted, unique, not
+        empty): the others may be missing (a part is often near the points tested on a few frames only)."""
+        closed = self._closed(name)
+        if name in self._done or len(frames) == len(self.posed):
+            return self._whole(name, closed)[1]
+        some = self._some.get(name)
+        need = frames if some is None or some.rows is None else frames[some.rows[frames] < 0]
+        if len(need):
+            some = _with_frames(some, self._made_on(name, closed, need), need, len(self.posed))
+            self._some[name] = some
+        assert some is not None
+        return some
+
+    def box(self, name: str) -> tuple[Tensor, Tensor]:
+        """``(n, 1, 3)`` low and high corners of the box of part ``name``'s own vertices on each frame (the root
+        box of its tree: the caps' centres lie within)."""
+        return self.box_of(name, self._closed(name).vertices)
+
+    def box_of(self, name: str, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
+        """``(n, 1, 3)`` the box of ``vertices (K,)``, some of part ``name``'s own, on each frame."""
+        key = (name, vertices.tobytes())
+        if key not in self._boxes:
+            if self._parent is not None and key in self._parent[0]._boxes:
+                lo, hi = self._parent[0]._boxes[key]
+                self._boxes[key] = lo[self._parent[1]], hi[self._parent[1]]
+            else:
+                self._boxes[key] = self._made_box(name, vertices)
+        return self._boxes[key]
+
+    def _made_box(self, name: str, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
+        """:meth:`box_of`, measured on :attr:`posed`."""
+        own = self.posed[:, torch.from_numpy(vertices)]
+        return own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+
+    def _closed(self, name: str) -> ClosedPart:
+        """The body's part ``name`` (it has it)."""
+        closed = self.rb.body.part(name)
         if closed is None:
-            return None
+            raise KeyError(f"the body has no part {name}")
+        return closed
+
+    def _whole(self, name: str, closed: ClosedPart) -> tuple[Tensor, PosedBoxes]:
+        """:meth:`get` of a part the body has."""
         if name not in self._done:
-            local = torch.from_numpy(closed.posed(self.posed.numpy()))
-            self._done[name] = (local, refit(self.rb.trees[name], local))
+            got = self._sliced(name)
+            self._done[name] = got if got is not None else self._made(name, closed)
         return self._done[name]
+
+    def _sliced(self, name: str) -> tuple[Tensor, PosedBoxes] | None:
+        """Part ``name`` sliced from the chunk these frames were taken from (:meth:`frames`), if it made it."""
+        if self._parent is None or name not in self._parent[0]._done:
+            return None
+        (local, boxes), idx = self._parent[0]._done[name], self._parent[1]
+        if boxes.rows is not None:
+            return local[idx], replace(boxes, rows=boxes.rows[idx])
+        local = local[idx]
+        return local, PosedBoxes([t[idx] for t in boxes.lo], [t[idx] for t in boxes.hi], local)
+
+    def _made(self, name: str, closed: ClosedPart) -> tuple[Tensor, PosedBoxes]:
+        """Part ``name``'s posed closed mesh and its tree refit to it."""
+        local = torch.from_numpy(closed.posed(self.posed.numpy())).contiguous()
+        return local, refit(self.rb.trees[name], local)
+
+    def _made_on(self, name: str, closed: ClosedPart, frames: Tensor) -> PosedBoxes:
+        """Part ``name``'s tree refit on ``frames (k,)`` only (``k`` rows), or taken from the chunk these frames
+        were taken from (:meth:`frames`)."""
+        if self._parent is not None:
+            parent, idx = self._parent
+            boxes = parent.tree_boxes(name, idx[frames])
+            rows = idx[frames] if boxes.rows is None else boxes.rows[idx[frames]]
+            return PosedBoxes([t[rows] for t in boxes.lo], [t[rows] for t in boxes.hi], boxes.vertices[rows])
+        local = torch.from_numpy(closed.posed(self.posed[frames].numpy())).contiguous()
+        return refit(self.rb.trees[name], local)
+
+
+class MovedParts(PosedParts):
+    """:class:`PosedParts` of the ``m`` frames of ``base`` moved one or more ways (``posed (n, V, 3)``, ``n`` a
+    multiple of ``m``: frame ``i`` is base frame ``i % m`` moved), where only the rows of the body vertices
+    ``moved (V,)`` (bool) differ from the base's. What lies on none of them is the base's (a part's boxes are
+    shared: :attr:`PosedBoxes.rows`); a part on a few of them is refit from the base's boxes where they moved
+    (min and max are exact: equal to a full refit)."""
+
+    def __init__(self, rb: ReachBody, posed: Tensor, base: PosedParts, moved: np.ndarray) -> None:
+        super().__init__(rb, posed)
+        self.base, self.moved = base, moved
+        self.base_frame = torch.arange(len(posed)) % len(base.posed)  # (n,) the base frame of each frame
+
+    def _made_box(self, name: str, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
+        """:meth:`box_of`: the base's over the vertices that did not move (the same for every way), with the
+        box of those that did."""
+        moved = self.moved[vertices]
+        if moved.all():
+            return super()._made_box(name, vertices)
+        lo, hi = self.base.box_of(name, vertices[~moved])
+        lo, hi = lo[self.base_frame], hi[self.base_frame]
+        if moved.any():
+            m_lo, m_hi = super()._made_box(name, vertices[moved])
+            lo, hi = torch.minimum(lo, m_lo), torch.maximum(hi, m_hi)
+        return lo, hi
+
+    def tree_boxes(self, name: str, frames: Tensor) -> PosedBoxes:
+        """:meth:`PosedParts.tree_boxes`; a part none of whose vertices moved reads the base's."""
+        if self._changed(self._closed(name)).any():
+            return super().tree_boxes(name, frames)
+        base = self.base.tree_boxes(name, torch.unique(self.base_frame[frames]))
+        return replace(base, rows=self.base_frame if base.rows is None else base.rows[self.base_frame])
+
+    def _changed(self, closed: ClosedPart) -> np.ndarray:
+        """``(N + L,)`` the part's vertices (its own, then its caps' centres) that moved."""
+        caps = np.array([self.moved[loop].any() for loop in closed.cap_loops], dtype=bool)
+        return np.concatenate([self.moved[closed.vertices], caps])
+
+    def _made_on(self, name: str, closed: ClosedPart, frames: Tensor) -> PosedBoxes:
+        """Part ``name``'s tree on ``frames (k,)`` only (``k`` rows), refit from the base's where it moved."""
+        base = self.base.tree_boxes(name, torch.unique(self.base_frame[frames]))
+        rows = self.base_frame[frames] if base.rows is None else base.rows[self.base_frame[frames]]
+        local = torch.from_numpy(closed.posed(self.posed[frames].numpy())).contiguous()
+        changed = torch.from_numpy(self._changed(closed))
+        return refit_changed(self.rb.trees[name], local, replace(base, rows=rows), changed)
+
+    def _made(self, name: str, closed: ClosedPart) -> tuple[Tensor, PosedBoxes]:
+        """Part ``name``: the base's where none of its vertices moved, else refit where they did."""
+        base = self.base.get(name)
+        assert base is not None  # the same body: the same parts
+        rows = self.base_frame if base[1].rows is None else base[1].rows[self.base_frame]
+        shared = replace(base[1], rows=rows)  # the base's boxes, each frame reading its base frame's
+        changed = self._changed(closed)
+        caps = changed[len(closed.vertices) :]
+        if not changed.any():
+            return base[0][self.base_frame], shared
+        if 2 * changed.sum() > len(changed):
+            local = torch.from_numpy(closed.posed(self.posed.numpy())).contiguous()
+        else:  # the base's, with the moved vertices and caps posed again (ClosedPart.posed of them alone)
+            local = base[0][self.base_frame]
+            only = replace(closed, vertices=closed.vertices[changed[: len(closed.vertices)]],
+                           cap_loops=[loop for loop, c in zip(closed.cap_loops, caps, strict=True) if c])  # fmt: skip
+            local[:, torch.from_numpy(np.nonzero(changed)[0])] = torch.from_numpy(only.posed(self.posed.numpy()))
+        return local, refit_changed(self.rb.trees[name], local, shared, torch.from_numpy(changed))
+
+
+def _with_frames(some: PosedBoxes | None, new: PosedBoxes, frames: Tensor, n: int) -> PosedBoxes:
+    """``some``, a tree's boxes on some of ``n`` frames (``rows`` -1 where missing), with ``new``, its boxes on
+    more ``frames (k,)``, added."""
+    if new.rows is not None:  # stored once for several frames: one row per frame here
+        new = PosedBoxes([t[new.rows] for t in new.lo], [t[new.rows] for t in new.hi], new.vertices[new.rows])
+    if some is None or some.rows is None:
+        rows = torch.full((n,), -1, dtype=torch.long)
+        rows[frames] = torch.arange(len(frames))
+        return replace(new, rows=rows)
+    rows = some.rows.clone()
+    rows[frames] = len(some.vertices) + torch.arange(len(frames))
+    return PosedBoxes([torch.cat(pair) for pair in zip(some.lo, new.lo, strict=True)],
+                      [torch.cat(pair) for pair in zip(some.hi, new.hi, strict=True)],
+                      torch.cat([some.vertices, new.vertices]), rows)  # fmt: skip
 
 
 def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,
@@ -244,5 +410,47 @@ def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames:
     return posed
 
 
+@dataclass
+class MovedPoses:
+    """:func:`posed_for_reach` of ``T`` ways of moving the same ``m`` frames, made from ``base (m, V, 3)``, those
+    frames before the moves (double, as :class:`PosedParts` holds it): the rows ``rows (R,)`` posed again,
+    ``new (T * m, R, 3)``, way after way; ``moved (V,)`` (bool) those rows (the others are the base's)."""
+
+    base: Tensor
+    rows: Tensor
+    new: Tensor
+    moved: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.new) // len(self.base)
+
+    def posed(self, first: int, count: int) -> Tensor:
+        """``(count * m, V, 3)`` the frames moved ``count`` ways from way ``first`` on, way after way."""
+        m = len(self.base)
+        out = self.base.repeat(count, 1, 1)
+        out[:, self.rows] = self.new[first * m : (first + count) * m].to(out.dtype)
+        return out
+
+
+def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Motion, frames: Tensor,
+                posed: Tensor) -> MovedPoses:  # fmt: skip
+    """:func:`posed_for_reach` of ``moved``, ``T * m`` frames: clip ``frames (m,)`` of ``motion`` moved ``T``
+    ways, one after another, from ``posed (m, V, 3)``, those frames of ``motion`` posed: only the vertices
+    skinned to a joint whose world transform moved are posed again (the others' rows are the same products of
+    the same numbers)."""
+    read = torch.from_numpy(rb.read_vertices())
+    with torch.no_grad():
+        grot, gpos = kinematics.forward_kinematics(moved.skeleton.parents, moved.rotations, moved.translations)
+        brot, bpos = kinematics.forward_kinematics(motion.skeleton.parents, motion.rotations[frames],
+                                                   motion.translations[frames])  # fmt: skip
+        same = (grot.view(-1, *brot.shape) == brot).all(dim=-1) & (gpos.view(-1, *bpos.shape) == bpos).all(dim=-1)
+        joints = ~same.flatten(0, 1).all(dim=0)  # (J,) the joints moved on some frame
+        rows = read[(character.dense_weights()[read][:, joints] != 0).any(dim=1)]
+        new = character.pose_rows(rows, grot, gpos).to(torch.get_default_dtype())  # posed_for_reach's dtype
+    mask = np.zeros(character.num_vertices, dtype=bool)
+    mask[rows.numpy()] = True
+    return MovedPoses(posed, rows, new, mask)
+
+
 __all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "hand_reach", "one_per_cell",
-           "posed_for_reach", "reach_body"]
+           "posed_for_reach", "posed_moved", "MovedParts", "MovedPoses", "reach_body"]

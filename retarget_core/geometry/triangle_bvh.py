@@ -7,13 +7,14 @@ are wanted too); tested per posed frame, the builds were the collision stage's p
 the tree's shape is fixed (a complete binary tree down to single triangles, split at the centroids' median),
 its boxes are refit with a few array reductions per level, and the queries walk it level by level as one
 frontier of (query, node) pairs over every frame: no Python loop over frames or nodes (queries go in blocks
-that bound the memory).
+that bound the memory). Where few vertices moved since a refit, only their leaves and those leaves' ancestors
+are refit again (:func:`refit_changed`); frames posed the same may share their boxes (:attr:`PosedBoxes.rows`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -44,12 +45,14 @@ class TriangleBVH:
 
 @dataclass(frozen=True)
 class PosedBoxes:
-    """Boxes of every node for ``n`` posed frames: ``lo[l], hi[l] (n, 2 ** l, 3)`` at level ``l`` (0: the root,
-    ``depth``: the leaves); ``vertices (n, V, 3)`` the posed vertices."""
+    """Boxes of every node for ``n`` posed frames: ``lo[l], hi[l] (s, 2 ** l, 3)`` at level ``l`` (0: the root,
+    ``depth``: the leaves); ``vertices (s, V, 3)`` the posed vertices; ``rows (n,)`` the stored row of each frame
+    (None: row ``i`` is frame ``i``): frames posed the same are stored once."""
 
     lo: list[Tensor]
     hi: list[Tensor]
     vertices: Tensor
+    rows: Tensor | None = None
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = LEAF_SIZE) -> TriangleBVH:
@@ -79,26 +82,67 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = LEAF_SIZ
 
 def refit(bvh: TriangleBVH, vertices: Tensor) -> PosedBoxes:
     """Every node's box for posed ``vertices (n, V, 3)``."""
-    corners = vertices[:, bvh.faces]  # (n, T, 3, 3)
-    t_lo, t_hi = corners.amin(dim=2), corners.amax(dim=2)
-    leaf = bvh.leaf_faces.clamp_min(0)  # padding repeats triangle 0 of the set; masked below
-    pad = (bvh.leaf_faces < 0)[None, :, :, None]
-    lo = t_lo[:, leaf].masked_fill(pad, math.inf).amin(dim=2)  # (n, L, 3)
-    hi = t_hi[:, leaf].masked_fill(pad, -math.inf).amax(dim=2)
+    vertices = vertices.contiguous()  # the gathers here and in the queries (a part's posed mesh comes vertex-major)
+    lo, hi = _leaf_boxes(bvh, vertices, torch.arange(len(bvh.leaf_faces)))
     los, his = [lo], [hi]
     for _ in range(bvh.depth):
-        lo = lo.reshape(lo.shape[0], -1, 2, 3).amin(dim=2)
-        hi = hi.reshape(hi.shape[0], -1, 2, 3).amax(dim=2)
+        lo, hi = _parent_boxes(lo, hi)
         los.append(lo)
         his.append(hi)
     return PosedBoxes(los[::-1], his[::-1], vertices)
 
 
-def _node_boxes(boxes: PosedBoxes, level: int, frame: Tensor, node: Tensor) -> tuple[Tensor, Tensor]:
-    """``(P, 3)`` low and high corners of ``node (P,)`` at ``level`` in ``frame (P,)``."""
-    width = boxes.lo[level].shape[1]
-    key = frame * width + node
-    return boxes.lo[level].reshape(-1, 3)[key], boxes.hi[level].reshape(-1, 3)[key]
+def refit_changed(bvh: TriangleBVH, vertices: Tensor, base: PosedBoxes, changed: Tensor) -> PosedBoxes:
+    """:func:`refit` of posed ``vertices (n, V, 3)`` from ``base``, the boxes of the same ``n`` frames before the
+    vertices ``changed (V,)`` (bool) moved: only the leaves with a triangle on a changed vertex and their ancestors
+    are computed again (the same min and max: equal to a full refit); ``base`` itself when nothing changed."""
+    face_changed = changed[bvh.faces].any(dim=1)  # (T,)
+    leaf = bvh.leaf_faces
+    leaves = torch.nonzero((face_changed[leaf.clamp_min(0)] & (leaf >= 0)).any(dim=1)).flatten()
+    if len(leaves) == 0:
+        return base
+    if 2 * len(leaves) > len(leaf):  # most of the tree moved: the full refit is cheaper than its copies
+        return refit(bvh, vertices)
+    los, his = [_per_frame(t, base.rows) for t in base.lo], [_per_frame(t, base.rows) for t in base.hi]
+    vertices = vertices.contiguous()
+    los[-1][:, leaves], his[-1][:, leaves] = _leaf_boxes(bvh, vertices, leaves)
+    nodes = leaves
+    for level in range(bvh.depth - 1, -1, -1):
+        nodes = torch.unique(nodes // 2)
+        kids = torch.stack([2 * nodes, 2 * nodes + 1], dim=1).flatten()
+        los[level][:, nodes], his[level][:, nodes] = _parent_boxes(los[level + 1][:, kids], his[level + 1][:, kids])
+    return PosedBoxes(los, his, vertices)
+
+
+def _per_frame(stored: Tensor, rows: Tensor | None) -> Tensor:
+    """A copy of ``stored (s, ...)`` with a row per frame (``rows (n,)``: the stored row of each; None: the same)."""
+    return stored.clone() if rows is None else stored[rows]
+
+
+def _leaf_boxes(bvh: TriangleBVH, vertices: Tensor, leaves: Tensor) -> tuple[Tensor, Tensor]:
+    """``(n, P, 3)`` low and high corners of ``leaves (P,)`` on posed ``vertices (n, V, 3)`` (an empty leaf:
+    +inf and -inf)."""
+    face = bvh.leaf_faces[leaves]  # (P, K), -1: padding
+    if face.shape[1] == 1:  # one triangle per leaf: its corners' min and max (no reduction over the leaf)
+        full = torch.nonzero(face[:, 0] >= 0).flatten()
+        tri = bvh.faces[face[full, 0]]  # (P', 3)
+        a, b, c = (vertices.index_select(1, tri[:, k]) for k in range(3))
+        spot = torch.full((len(leaves),), len(full), dtype=torch.long)  # each leaf's row; empty ones the last (inf)
+        spot[full] = torch.arange(len(full))
+        empty = vertices.new_full((vertices.shape[0], 1, 3), math.inf)
+        lo = torch.cat([torch.minimum(torch.minimum(a, b), c), empty], dim=1).index_select(1, spot)
+        hi = torch.cat([torch.maximum(torch.maximum(a, b), c), -empty], dim=1).index_select(1, spot)
+        return lo, hi
+    corners = vertices[:, bvh.faces[face.clamp_min(0)]]  # (n, P, K, 3, 3); padding repeats triangle 0, masked
+    mask = (face < 0)[None, :, :, None]
+    lo = corners.amin(dim=3).masked_fill(mask, math.inf).amin(dim=2)
+    hi = corners.amax(dim=3).masked_fill(mask, -math.inf).amax(dim=2)
+    return lo, hi
+
+
+def _parent_boxes(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """``(n, P, 3)`` the boxes of the parents of nodes ``lo, hi (n, 2 P, 3)`` (siblings next to each other)."""
+    return torch.minimum(lo[:, 0::2], lo[:, 1::2]), torch.maximum(hi[:, 0::2], hi[:, 1::2])
 
 
 def _leaf_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]:
@@ -127,6 +171,8 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
     closest triangle ``(Q,)`` (the lowest index where several are: a point nearest a shared edge); ``inf`` and -1
     where none is within ``max_distance`` (one for all, or ``(Q,)``: a tighter bound prunes the walk sooner).
     Blocks of :data:`QUERY_BLOCK` queries bound the memory."""
+    if boxes.rows is not None:
+        return closest_triangles(bvh, replace(boxes, rows=None), boxes.rows[frame], points, max_distance)
     q_n = len(points)
     limit = torch.as_tensor(max_distance, dtype=points.dtype).expand(q_n)
     if q_n > QUERY_BLOCK:
@@ -136,16 +182,18 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
     flat = boxes.vertices.reshape(-1, 3)
     v_n = boxes.vertices.shape[1]
     bound = limit.clone()
-    pair_q, node = torch.arange(q_n), torch.zeros(q_n, dtype=torch.long)
+    pair_q, key = torch.arange(q_n), frame.clone()  # key: the pair's box row, frame * 2 ** level + node
     for level in range(bvh.depth + 1):
-        pf = frame[pair_q]
-        near = _box_distance(points[pair_q], *_node_boxes(boxes, level, pf, node))
-        far = (points[pair_q] - flat[pf * v_n + bvh.corner(level, node)]).norm(dim=-1)  # a surface point's
+        at = points[pair_q]
+        near = _box_distance(at, boxes.lo[level].reshape(-1, 3)[key], boxes.hi[level].reshape(-1, 3)[key])
+        pf, node = key >> level, key & ((1 << level) - 1)
+        far = (at - flat[pf * v_n + bvh.corner(level, node)]).norm(dim=-1)  # a surface point's
         bound = bound.scatter_reduce(0, pair_q, far, "amin")
-        keep = near <= bound[pair_q]
-        pair_q, node, near = pair_q[keep], node[keep], near[keep]
+        keep = torch.nonzero(near <= bound[pair_q]).flatten()
+        pair_q, key, near = pair_q[keep], key[keep], near[keep]
         if level < bvh.depth:
-            pair_q, node = pair_q.repeat_interleave(2), torch.stack([2 * node, 2 * node + 1], dim=1).flatten()
+            pair_q, key = pair_q.repeat_interleave(2), torch.stack([2 * key, 2 * key + 1], dim=1).flatten()
+    node = key & ((1 << bvh.depth) - 1)
     pair_q, node = _nearest_leaf_first(bvh, boxes, frame, points, pair_q, node, near, bound)
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q], node)
     d = _distances(points[pair_q], corners)
@@ -165,9 +213,9 @@ def _nearest_leaf_first(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, poin
     triangle once each query's nearest box has been searched exactly (its distance bounds the others)."""
     if len(pair_q) == 0:
         return pair_q, leaf
-    order = torch.argsort(near)
+    # each query's first pair in walk order (what the pairs sorted by ``near`` gave too: the smallest index)
     first = torch.full_like(bound, len(pair_q), dtype=torch.long).scatter_reduce(
-        0, pair_q[order], order, "amin")  # fmt: skip
+        0, pair_q, torch.arange(len(pair_q)), "amin")  # fmt: skip
     has = first < len(pair_q)
     rows = first[has]
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q[rows]], leaf[rows])
@@ -205,6 +253,8 @@ def _ray_crossings(o: Tensor, direction: Tensor, a: Tensor, b: Tensor, c: Tensor
 def winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: Tensor) -> Tensor:
     """``(Q,)`` the signed count of triangles a ray from each of ``points (Q, 3)`` (posed frame ``frame (Q,)``)
     crosses: the winding number of a closed mesh (+-1 inside an outward or inward oriented one, 0 outside)."""
+    if boxes.rows is not None:
+        return winding_numbers(bvh, replace(boxes, rows=None), boxes.rows[frame], points)
     if len(points) > QUERY_BLOCK:
         return torch.cat([winding_numbers(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK])
                           for s in range(0, len(points), QUERY_BLOCK)])  # fmt: skip
@@ -212,18 +262,19 @@ def winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: 
     direction = direction / direction.norm()
     inv_dir = 1.0 / direction
     q_n = len(points)
-    pair_q, node = torch.arange(q_n), torch.zeros(q_n, dtype=torch.long)
+    pair_q, key = torch.arange(q_n), frame.clone()  # key: the pair's box row, frame * 2 ** level + node
     for level in range(bvh.depth + 1):
-        lo, hi = _node_boxes(boxes, level, frame[pair_q], node)
-        keep = _ray_hits_box(points[pair_q], inv_dir, lo, hi)
-        pair_q, node = pair_q[keep], node[keep]
+        lo, hi = boxes.lo[level].reshape(-1, 3)[key], boxes.hi[level].reshape(-1, 3)[key]
+        keep = torch.nonzero(_ray_hits_box(points[pair_q], inv_dir, lo, hi)).flatten()
+        pair_q, key = pair_q[keep], key[keep]
         if level < bvh.depth:
-            pair_q, node = pair_q.repeat_interleave(2), torch.stack([2 * node, 2 * node + 1], dim=1).flatten()
+            pair_q, key = pair_q.repeat_interleave(2), torch.stack([2 * key, 2 * key + 1], dim=1).flatten()
+    node = key & ((1 << bvh.depth) - 1)
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q], node)
     cross = _ray_crossings(points[pair_q][:, None], direction, corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
     cross = cross.masked_fill(face < 0, 0.0).sum(dim=1)
     return points.new_zeros(q_n).index_add(0, pair_q, cross)
 
 
-__all__ = ["PosedBoxes", "TriangleBVH", "build_bvh", "closest_triangles", "refit",
+__all__ = ["PosedBoxes", "TriangleBVH", "build_bvh", "closest_triangles", "refit", "refit_changed",
            "winding_numbers"]  # fmt: skip

@@ -19,7 +19,10 @@ them outside), and the posed-mesh lever it has costs end-effector error (docs/co
    (:func:`retarget_core.refine.judged_check.never_worse_weights`): a frame whose judged arm penetration grew is
    withdrawn smoothly.
 
-Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
+Lengths at a 1.80 m character (scaled to the body). Computes on the CPU, a chunk of frames at a time: the turns
+of a chunk's frames are measured on its parts, posing and refitting again only what a turn moves
+(:class:`retarget_core.contacts.hand_reach.MovedParts`), and the never-worse check's "before" is read in the same
+pass (all equal to measuring each turn afresh).
 """
 
 from __future__ import annotations
@@ -32,12 +35,19 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from retarget_core.contacts.arm_depth import arm_penetration
-from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_for_reach, reach_body
+from retarget_core.contacts.arm_depth import arm_penetration, arm_penetration_and_depth
+from retarget_core.contacts.hand_reach import (
+    MovedParts,
+    PosedParts,
+    ReachBody,
+    posed_for_reach,
+    posed_moved,
+    reach_body,
+)
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of, swivel_arms
-from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, never_worse_weights
+from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, ArmFigures, never_worse_weights
 from retarget_core.refine.temporal import weighted_smooth
 
 DEEP_M = 0.01  # ACCEPTANCE.md: frames > 1 cm (what the report counts)
@@ -84,29 +94,58 @@ def repeated(motion: Motion, frames: Tensor, times: int) -> Motion:
     return Motion(motion.skeleton, motion.fps, motion.rotations[idx], motion.translations[idx], motion.name)
 
 
-def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], p: SwivelParams) -> ArmFrames:
+def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm],
+                  p: SwivelParams) -> tuple[ArmFrames, ArmFigures]:  # fmt: skip
     """:class:`ArmFrames` of ``motion``: each arm's depth on every frame, and on the frames where it is deeper
-    than ``search_m`` the turn of ``turns_deg`` that makes it shallowest (no turn, then the smaller, on ties)."""
+    than ``search_m`` the turn of ``turns_deg`` that makes it shallowest (no turn, then the smaller, on ties); and
+    both arms' :class:`ArmFigures` on every frame (the never-worse check's "before", read on the same parts).
+    A chunk of frames at a time: its turns are measured on the parts of its frames (:func:`best_turns`)."""
     f_n = motion.num_frames
     out = ArmFrames(torch.zeros(f_n, 2, dtype=torch.float64), torch.full((f_n, 2), p.free_weight, dtype=torch.float64),
                     torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+    figures = ArmFigures.zeros(f_n)
     turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
-    depths = arm_depths(ctx, rb, motion, torch.arange(f_n), [arm.side for arm in arms], p.chunk)
-    for arm in arms:
-        depth = depths[:, arm.side]
-        out.inside[:, arm.side], out.deep[:, arm.side] = depth > 0, depth > DEEP_M * rb.scale
-        out.weight[depth > 0, arm.side] = 1.0
-        search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
-        if len(search) == 0:
-            continue
-        angles = torch.zeros(len(search) * len(turns), 2, dtype=torch.float64)
-        angles[:, arm.side] = turns.repeat_interleave(len(search))
-        many = swivel_arms(repeated(motion, search, len(turns)), arms, angles)
-        tried = arm_depths(ctx, rb, many, torch.arange(len(angles)), [arm.side], p.chunk)[:, arm.side].view(len(turns), -1)
-        tried = torch.cat([depth[search][None], tried])  # no turn first: kept unless a turn is shallower
-        best = tried.argmin(dim=0)
-        out.wanted[search, arm.side] = torch.cat([turns.new_zeros(1), turns])[best]
-    return out
+    cap = ARM_DEPTH_CAP_M * rb.scale
+    for s in range(0, f_n, p.chunk):
+        rows = slice(s, min(s + p.chunk, f_n))
+        frames = torch.arange(f_n)[rows]
+        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames))
+        depths = torch.zeros(len(frames), 2, dtype=torch.float64)
+        for side in range(2):  # both, as arm_check reads them
+            with_hand, depths[:, side] = arm_penetration_and_depth(pp, side, cap)
+            figures.add(rows, *with_hand)
+        for arm in arms:
+            depth = depths[:, arm.side]
+            out.inside[rows, arm.side], out.deep[rows, arm.side] = depth > 0, depth > DEEP_M * rb.scale
+            out.weight[frames[depth > 0], arm.side] = 1.0
+            search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
+            if len(search):
+                out.wanted[frames[search], arm.side] = best_turns(ctx, rb, motion, arms, arm, pp, frames, search,
+                                                                  depth, turns, p.chunk)  # fmt: skip
+    return out, figures
+
+
+def best_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
+               frames: Tensor, search: Tensor, depth: Tensor, turns: Tensor, chunk: int) -> Tensor:  # fmt: skip
+    """``(m,)`` the turn of ``turns (T,)`` (or 0) that makes ``arm`` shallowest at rows ``search (m,)`` of the
+    chunk of clip ``frames (n,)`` whose parts are ``pp`` and the arm's depths ``depth (n,)``. The turns are
+    measured about ``chunk`` frames at a time, their parts made from the chunk's where the turn left them (the
+    legs, most of the torso, head and other arm)."""
+    m = len(search)
+    base = pp.frames(search)
+    angles = torch.zeros(len(turns) * m, 2, dtype=torch.float64)
+    angles[:, arm.side] = turns.repeat_interleave(m)
+    many = swivel_arms(repeated(motion, frames[search], len(turns)), arms, angles)
+    poses = posed_moved(rb, ctx.target, many, motion, frames[search], base.posed)
+    cap = ARM_DEPTH_CAP_M * rb.scale
+    tried = [depth[search][None]]  # no turn first: kept unless a turn is shallower
+    group = max(1, chunk // m)  # turns measured together
+    for first in range(0, len(turns), group):
+        count = min(group, len(turns) - first)
+        parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
+        tried.append(arm_penetration(parts, arm.side, cap, with_hand=False)[1].view(count, m))
+    best = torch.cat(tried).argmin(dim=0)
+    return torch.cat([turns.new_zeros(1), turns])[best]
 
 
 @computes_on_cpu
@@ -118,14 +157,16 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
     if not arms or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm", "seconds": 0.0})
     rb = reach_body(ctx.target, ctx.target_mapping)
-    first = measure_turns(ctx, rb, motion, arms, p)
+    first, figures = measure_turns(ctx, rb, motion, arms, p)
     turned = torch.stack([weighted_smooth(first.wanted[:, s : s + 1], first.weight[:, s], p.smooth_seconds * motion.fps)[:, 0]
                           for s in range(2)], dim=1)  # fmt: skip
     f_n = motion.num_frames
     changed = torch.nonzero(turned.abs().amax(dim=1) > 1e-4).flatten()
     share = torch.ones(f_n, dtype=torch.float64)
     if len(changed):
-        share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed)
+        before = figures.check(changed, ctx.target.num_vertices, changed)
+        share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed,
+                                    before=before)  # fmt: skip
     out = swivel_arms(motion, arms, turned * share[:, None])
     return StageOutcome(out, _report(first, turned, share, changed, t0))
 

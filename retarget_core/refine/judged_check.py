@@ -6,7 +6,7 @@ on the judge's closed parts): where a changed frame got worse, the change is wit
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -25,22 +25,42 @@ ARM_DEPTH_CAP_M = 0.10  # arm vertices deeper than this in a part count at this 
 Flag = Callable[[Motion, Tensor], Tensor]  # (moved motion, frames (n,)) -> (n,) frames worse for another reason
 
 
+@dataclass
+class ArmFigures:
+    """Per frame ``(n,)`` both arms' penetration as :func:`arm_check` reads it: ``volume`` the sampled depths
+    times their samples' areas (m^3), ``max_depth`` the deepest, ``count`` how many."""
+
+    volume: Tensor
+    max_depth: Tensor
+    count: Tensor
+
+    @classmethod
+    def zeros(cls, n: int) -> ArmFigures:
+        return cls(torch.zeros(n), torch.zeros(n), torch.zeros(n))
+
+    def add(self, rows: slice, count: Tensor, deepest: Tensor, volume: Tensor) -> None:
+        """One arm's :func:`arm_penetration` ``(m,)`` on frames ``rows`` added in."""
+        self.count[rows] += count
+        self.max_depth[rows] = torch.maximum(self.max_depth[rows], deepest.float())
+        self.volume[rows] += volume.float()
+
+    def check(self, frames: Tensor, num_vertices: int, rows: Tensor | None = None) -> FrameCheck:
+        """The :class:`FrameCheck` of clip ``frames (n,)`` from these figures' ``rows (n,)`` (default: all)."""
+        pick = slice(None) if rows is None else rows
+        depth = VertexDepths.empty(len(frames), num_vertices)
+        return FrameCheck(frames, self.volume[pick], self.max_depth[pick], self.count[pick], depth, torch.zeros(0))
+
+
 def arm_check(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, chunk: int = 64) -> FrameCheck:
     """Both arms' penetration as the judge reads it (sampled arm vertices inside the parts it tests them against)
-    on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check: ``volume`` the sampled depths
-    times their samples' areas (m^3), ``max_depth`` the deepest, ``count`` how many."""
-    n = len(frames)
-    vol, mx, cnt = torch.zeros(n), torch.zeros(n), torch.zeros(n)
+    on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check (:class:`ArmFigures`)."""
+    figures = ArmFigures.zeros(len(frames))
     cap = ARM_DEPTH_CAP_M * rb.scale
-    for s in range(0, n, chunk):
+    for s in range(0, len(frames), chunk):
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
         for side in range(2):
-            c, d, t = arm_penetration(pp, side, cap)
-            cnt[s : s + chunk] += c
-            mx[s : s + chunk] = torch.maximum(mx[s : s + chunk], d.float())
-            vol[s : s + chunk] += t.float()
-    depth = VertexDepths.empty(n, ctx.target.num_vertices)
-    return FrameCheck(frames, vol, mx, cnt, depth, torch.zeros(0))
+            figures.add(slice(s, s + chunk), *arm_penetration(pp, side, cap))
+    return figures.check(frames, ctx.target.num_vertices)
 
 
 def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> FrameCheck:
@@ -51,10 +71,12 @@ def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> Frame
 
 
 def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved: Callable[[Tensor], Motion],
-                        changed: Tensor, flag: Flag | None = None) -> Tensor:  # fmt: skip
+                        changed: Tensor, flag: Flag | None = None,
+                        before: FrameCheck | None = None) -> Tensor:  # fmt: skip
     """``(F,)`` the share of a stage's change kept per frame: the collision stage's never-worse check on the
     ``changed (n,)`` frames, with the arms' penetration as the judge reads it (:func:`arm_check`); ``moved(weight
-    (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse."""
+    (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse; ``before``:
+    the input's :func:`arm_check` on ``changed`` where the stage has it already (measured otherwise)."""
     cp = CollisionParams()
     no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
 
@@ -63,11 +85,13 @@ def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved
         check = arm_check(ctx, rb, out, frames)
         return check if flag is None else replace(check, flagged=flag(out, frames))
 
-    before = spread_check(arm_check(ctx, rb, motion, changed), motion.num_frames, ctx.target.num_vertices)
+    if before is None:
+        before = arm_check(ctx, rb, motion, changed)
+    before = spread_check(before, motion.num_frames, ctx.target.num_vertices)
     settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
                                 at_fps(cp.fallback_ramp, motion.fps))  # fmt: skip
     check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
     return check.weight
 
 
-__all__ = ["arm_check", "never_worse_weights", "spread_check"]
+__all__ = ["ArmFigures", "arm_check", "never_worse_weights", "spread_check"]
