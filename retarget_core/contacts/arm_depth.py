@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.contacts.hand_reach import PosedParts
-from retarget_core.geometry.triangle_bvh import closest_triangles, winding_numbers
+from retarget_core.geometry.triangle_bvh import PosedBoxes, closest_triangles, winding_numbers
 from retarget_core.metrics.acceptance_body import HANDS, LIMB_TESTS
 
 EMPTY = torch.zeros(0, dtype=torch.long)
@@ -74,19 +74,29 @@ def _tests(pp: PosedParts, side: int, arm_n: int) -> list[tuple]:
 def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
     """The vertices ``pts (K,)`` inside part ``name`` on the chunk's frames: frame and index into ``pts`` ``(N,)``
     and depth ``(N,)`` (at most ``max_depth``)."""
+    f, k, d, _, _ = points_inside(pp, pts, name, max_depth)
+    return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
+
+
+def points_inside(pp: PosedParts, pts: Tensor, name: str,
+                  max_depth: float) -> tuple[Tensor, Tensor, Tensor, Tensor, PosedBoxes | None]:  # fmt: skip
+    """The vertices ``pts (K,)`` inside part ``name`` on the chunk's frames: frame and index into ``pts`` ``(N,)``,
+    depth ``(N,)`` and nearest triangle of the part's closed mesh ``(N,)`` (``inf`` and -1 deeper than
+    ``max_depth``), and the part's tree boxes they were read on (None when no point is in the part's box)."""
+    empty = (EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64), EMPTY, None)
     closed = pp.rb.body.part(name)
     if closed is None or len(pts) == 0:
-        return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
+        return empty
     at = pp.posed[:, pts]  # (n, K, 3)
     lo, hi = pp.box(name)
     f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
     if len(f) == 0:
-        return EMPTY, EMPTY, torch.zeros(0, dtype=torch.float64)
+        return empty
     tree, boxes = pp.rb.trees[name], pp.tree_boxes(name, torch.unique(f))
     inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
     f, k = f[inside], k[inside]
-    d, _ = closest_triangles(tree, boxes, f, at[f, k], max_depth)
-    return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
+    d, face = closest_triangles(tree, boxes, f, at[f, k], max_depth)
+    return f, k, d, face, boxes
 
 
-__all__ = ["arm_penetration", "arm_penetration_and_depth"]
+__all__ = ["arm_penetration", "arm_penetration_and_depth", "points_inside"]

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from retarget_core.contacts.arm_depth import points_inside
 from retarget_core.contacts.hand_reach import PosedParts
 from retarget_core.geometry.closest_point import closest_points
-from retarget_core.geometry.triangle_bvh import closest_triangles, winding_numbers
 from retarget_core.metrics.acceptance_body import HANDS, LIMB_TESTS
 
 
@@ -62,24 +62,10 @@ def hand_depths(pp: PosedParts, max_depth: float) -> HandDepth:
 def _deepest_inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float, out: HandDepth, side: int,
                     p_i: int) -> None:  # fmt: skip
     """Write into ``out[:, side, p_i]`` the deepest of ``pts (K,)`` inside part ``name`` per frame."""
-    closed = pp.rb.body.part(name)
-    if closed is None:
-        return
-    at = pp.posed[:, pts]  # (n, K, 3)
-    own = pp.posed[:, torch.from_numpy(closed.vertices)]
-    lo, hi = own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
-    f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
-    got = pp.get(name) if len(f) else None
-    if got is None:
-        return
-    local, boxes = got
-    tree = pp.rb.trees[name]
-    inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
-    f, k = f[inside], k[inside]
-    d, face = closest_triangles(tree, boxes, f, at[f, k], max_depth)
-    read = torch.isfinite(d)
+    f, k, d, face, boxes = points_inside(pp, pts, name, max_depth)
+    read = face >= 0  # deeper than max_depth: not read
     f, k, d, face = f[read], k[read], d[read], face[read]
-    if len(f) == 0:
+    if len(f) == 0 or boxes is None:
         return
     n = pp.posed.shape[0]
     deepest = torch.zeros(n, dtype=torch.float64).scatter_reduce(0, f, d, "amax")
@@ -87,11 +73,12 @@ def _deepest_inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float, ou
     pick = torch.full((n,), -1, dtype=torch.long).scatter_reduce(0, f[tied], tied, "amax")
     pick = pick[pick >= 0]
     f, k, face = f[pick], k[pick], face[pick]
-    tri = tree.faces[face]
-    point = at[f, k]
+    tri = pp.rb.trees[name].faces[face]
+    row = f if boxes.rows is None else boxes.rows[f]  # the stored row of each frame's posed closed mesh
+    point = pp.posed[f, pts[k]]
     out.depth[f, side, p_i] = deepest[f]
     out.hand_point[f, side, p_i] = point
-    out.surface_point[f, side, p_i] = closest_points(point, *(local[f, tri[:, c]] for c in range(3)))
+    out.surface_point[f, side, p_i] = closest_points(point, *(boxes.vertices[row, tri[:, c]] for c in range(3)))
 
 
 __all__ = ["HandDepth", "hand_depths", "hand_tests"]
