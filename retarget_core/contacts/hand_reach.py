@@ -209,7 +209,7 @@ class PosedParts:
         if boxes.rows is not None:
             return local[idx], replace(boxes, rows=boxes.rows[idx])
         local = local[idx]
-        return local, PosedBoxes([t[idx] for t in boxes.lo], [t[idx] for t in boxes.hi], local)
+        return local, PosedBoxes(boxes.lo[idx], boxes.hi[idx], local)
 
     def _made(self, name: str, closed: ClosedPart) -> tuple[Tensor, PosedBoxes]:
         """Part ``name``'s posed closed mesh and its tree refit to it."""
@@ -223,7 +223,7 @@ class PosedParts:
             parent, idx = self._parent
             boxes = parent.tree_boxes(name, idx[frames])
             rows = idx[frames] if boxes.rows is None else boxes.rows[idx[frames]]
-            return PosedBoxes([t[rows] for t in boxes.lo], [t[rows] for t in boxes.hi], boxes.vertices[rows])
+            return PosedBoxes(boxes.lo[rows], boxes.hi[rows], boxes.vertices[rows])
         local = torch.from_numpy(closed.posed(self.posed[frames].numpy())).contiguous()
         return refit(self.rb.trees[name], local)
 
@@ -297,16 +297,15 @@ def _with_frames(some: PosedBoxes | None, new: PosedBoxes, frames: Tensor, n: in
     """``some``, a tree's boxes on some of ``n`` frames (``rows`` -1 where missing), with ``new``, its boxes on
     more ``frames (k,)``, added."""
     if new.rows is not None:  # stored once for several frames: one row per frame here
-        new = PosedBoxes([t[new.rows] for t in new.lo], [t[new.rows] for t in new.hi], new.vertices[new.rows])
+        new = PosedBoxes(new.lo[new.rows], new.hi[new.rows], new.vertices[new.rows])
     if some is None or some.rows is None:
         rows = torch.full((n,), -1, dtype=torch.long)
         rows[frames] = torch.arange(len(frames))
         return replace(new, rows=rows)
     rows = some.rows.clone()
     rows[frames] = len(some.vertices) + torch.arange(len(frames))
-    return PosedBoxes([torch.cat(pair) for pair in zip(some.lo, new.lo, strict=True)],
-                      [torch.cat(pair) for pair in zip(some.hi, new.hi, strict=True)],
-                      torch.cat([some.vertices, new.vertices]), rows)  # fmt: skip
+    return PosedBoxes(torch.cat([some.lo, new.lo]), torch.cat([some.hi, new.hi]), torch.cat([some.vertices, new.vertices]),
+                      rows)  # fmt: skip
 
 
 def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from retarget_core.geometry.bvh_kernels import closest_walk, refit_boxes, run_in_blocks, winding_walk
 from retarget_core.geometry.closest_point import closest_points
 
 RAY_DIRECTION = (0.5773, 0.6183, 0.5331)  # winding rays: an oblique direction no mesh edge is drawn along
@@ -45,14 +46,19 @@ class TriangleBVH:
 
 @dataclass(frozen=True)
 class PosedBoxes:
-    """Boxes of every node for ``n`` posed frames: ``lo[l], hi[l] (s, 2 ** l, 3)`` at level ``l`` (0: the root,
-    ``depth``: the leaves); ``vertices (s, V, 3)`` the posed vertices; ``rows (n,)`` the stored row of each frame
-    (None: row ``i`` is frame ``i``): frames posed the same are stored once."""
+    """Boxes of every node for ``n`` posed frames in heap order: ``lo, hi (s, H, 3)``, node ``i`` of level ``l``
+    (0: the root, ``depth``: the leaves) at ``2 ** l - 1 + i`` (``H = 2 ** (depth + 1) - 1``); ``vertices (s, V,
+    3)`` the posed vertices; ``rows (n,)`` the stored row of each frame (None: row ``i`` is frame ``i``): frames
+    posed the same are stored once."""
 
-    lo: list[Tensor]
-    hi: list[Tensor]
+    lo: Tensor
+    hi: Tensor
     vertices: Tensor
     rows: Tensor | None = None
+
+    def level(self, level: int) -> slice:
+        """The heap's columns of ``level``'s nodes."""
+        return slice((1 << level) - 1, (1 << (level + 1)) - 1)
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = LEAF_SIZE) -> TriangleBVH:
@@ -81,15 +87,21 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = LEAF_SIZ
 
 
 def refit(bvh: TriangleBVH, vertices: Tensor) -> PosedBoxes:
-    """Every node's box for posed ``vertices (n, V, 3)``."""
+    """Every node's box for posed ``vertices (n, V, 3)`` (on the CPU compiled: :func:`bvh_kernels.refit_boxes`)."""
     vertices = vertices.contiguous()  # the gathers here and in the queries (a part's posed mesh comes vertex-major)
-    lo, hi = _leaf_boxes(bvh, vertices, torch.arange(len(bvh.leaf_faces)))
-    los, his = [lo], [hi]
-    for _ in range(bvh.depth):
-        lo, hi = _parent_boxes(lo, hi)
-        los.append(lo)
-        his.append(hi)
-    return PosedBoxes(los[::-1], his[::-1], vertices)
+    heap = (2 << bvh.depth) - 1
+    lo, hi = vertices.new_empty(len(vertices), heap, 3), vertices.new_empty(len(vertices), heap, 3)
+    boxes = PosedBoxes(lo, hi, vertices)
+    if vertices.device.type == "cpu":
+        arrays = vertices.numpy(), bvh.faces.numpy(), bvh.leaf_faces.numpy(), bvh.depth, lo.numpy(), hi.numpy()
+        run_in_blocks(lambda b: refit_boxes(arrays[0][b], *arrays[1:4], arrays[4][b], arrays[5][b]), len(vertices), 8)
+        return boxes
+    leaves = boxes.level(bvh.depth)
+    lo[:, leaves], hi[:, leaves] = _leaf_boxes(bvh, vertices, torch.arange(len(bvh.leaf_faces)))
+    for level in range(bvh.depth - 1, -1, -1):
+        kids, here = boxes.level(level + 1), boxes.level(level)
+        lo[:, here], hi[:, here] = _parent_boxes(lo[:, kids], hi[:, kids])
+    return boxes
 
 
 def refit_changed(bvh: TriangleBVH, vertices: Tensor, base: PosedBoxes, changed: Tensor) -> PosedBoxes:
@@ -103,15 +115,17 @@ def refit_changed(bvh: TriangleBVH, vertices: Tensor, base: PosedBoxes, changed:
         return base
     if 2 * len(leaves) > len(leaf):  # most of the tree moved: the full refit is cheaper than its copies
         return refit(bvh, vertices)
-    los, his = [_per_frame(t, base.rows) for t in base.lo], [_per_frame(t, base.rows) for t in base.hi]
     vertices = vertices.contiguous()
-    los[-1][:, leaves], his[-1][:, leaves] = _leaf_boxes(bvh, vertices, leaves)
+    boxes = PosedBoxes(_per_frame(base.lo, base.rows), _per_frame(base.hi, base.rows), vertices)
+    first = (1 << bvh.depth) - 1
+    boxes.lo[:, first + leaves], boxes.hi[:, first + leaves] = _leaf_boxes(bvh, vertices, leaves)
     nodes = leaves
     for level in range(bvh.depth - 1, -1, -1):
         nodes = torch.unique(nodes // 2)
-        kids = torch.stack([2 * nodes, 2 * nodes + 1], dim=1).flatten()
-        los[level][:, nodes], his[level][:, nodes] = _parent_boxes(los[level + 1][:, kids], his[level + 1][:, kids])
-    return PosedBoxes(los, his, vertices)
+        here = (1 << level) - 1 + nodes
+        kids = ((1 << (level + 1)) - 1 + torch.stack([2 * nodes, 2 * nodes + 1], dim=1)).flatten()
+        boxes.lo[:, here], boxes.hi[:, here] = _parent_boxes(boxes.lo[:, kids], boxes.hi[:, kids])
+    return boxes
 
 
 def _per_frame(stored: Tensor, rows: Tensor | None) -> Tensor:
@@ -160,6 +174,12 @@ def _distances(p: Tensor, corners: Tensor) -> Tensor:
     return (x - closest_points(x, flat[:, 0], flat[:, 1], flat[:, 2])).norm(dim=-1).reshape(-1, k)
 
 
+def _node_boxes(boxes: PosedBoxes, level: int, key: Tensor) -> tuple[Tensor, Tensor]:
+    """``(P, 3)`` the boxes of nodes ``key (P,)`` (frame ``* 2 ** level +`` node) at ``level``."""
+    at = (key >> level) * boxes.lo.shape[1] + (1 << level) - 1 + (key & ((1 << level) - 1))
+    return boxes.lo.reshape(-1, 3)[at], boxes.hi.reshape(-1, 3)[at]
+
+
 def _box_distance(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """``(P,)`` distance of points ``p (P, 3)`` to boxes ``lo, hi (P, 3)`` (0 inside)."""
     return (torch.clamp(lo - p, min=0.0) + torch.clamp(p - hi, min=0.0)).norm(dim=-1)
@@ -170,14 +190,45 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
     """Exact distance ``(Q,)`` from ``points (Q, 3)`` (posed frame ``frame (Q,)``) to the triangles, and the
     closest triangle ``(Q,)`` (the lowest index where several are: a point nearest a shared edge); ``inf`` and -1
     where none is within ``max_distance`` (one for all, or ``(Q,)``: a tighter bound prunes the walk sooner).
-    Blocks of :data:`QUERY_BLOCK` queries bound the memory."""
+    On the CPU the compiled walk answers (:mod:`retarget_core.geometry.bvh_kernels`), elsewhere the tensor walk
+    (:func:`tensor_closest_triangles`)."""
+    rows = frame if boxes.rows is None else boxes.rows[frame]
+    limit = torch.as_tensor(max_distance, dtype=points.dtype).expand(len(points))
+    if points.device.type != "cpu":
+        return tensor_closest_triangles(bvh, replace(boxes, rows=None), rows, points, limit)
+    verts = boxes.vertices
+    pts, lim = points.to(verts.dtype).contiguous().numpy(), limit.to(verts.dtype).contiguous().numpy()
+    distance, face = np.empty(len(pts), dtype=pts.dtype), np.empty(len(pts), dtype=np.int64)
+    arrays = _walk_arrays(bvh, boxes)
+    rows_np = rows.contiguous().numpy()
+
+    def walk(b: slice) -> None:
+        closest_walk(*arrays, rows_np[b], pts[b], lim[b], TIE_M, distance[b], face[b])
+
+    run_in_blocks(walk, len(pts))
+    return torch.from_numpy(distance).to(points.dtype), torch.from_numpy(face)
+
+
+def _walk_arrays(
+    bvh: TriangleBVH, boxes: PosedBoxes
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The arrays the compiled walks read: boxes, vertices, faces, leaves and depth."""
+    return (boxes.lo.contiguous().numpy(), boxes.hi.contiguous().numpy(), boxes.vertices.contiguous().numpy(),
+            bvh.faces.numpy(), bvh.leaf_faces.numpy(), bvh.depth)  # fmt: skip
+
+
+def tensor_closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: Tensor,
+                             max_distance: float | Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """:func:`closest_triangles` walked level by level as one frontier of (query, node) pairs over every frame, in
+    tensor operations (any device; the compiled walk's reference). Blocks of :data:`QUERY_BLOCK` queries bound
+    the memory."""
     if boxes.rows is not None:
-        return closest_triangles(bvh, replace(boxes, rows=None), boxes.rows[frame], points, max_distance)
+        return tensor_closest_triangles(bvh, replace(boxes, rows=None), boxes.rows[frame], points, max_distance)
     q_n = len(points)
     limit = torch.as_tensor(max_distance, dtype=points.dtype).expand(q_n)
     if q_n > QUERY_BLOCK:
-        parts = [closest_triangles(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK],
-                                   limit[s : s + QUERY_BLOCK]) for s in range(0, q_n, QUERY_BLOCK)]  # fmt: skip
+        parts = [tensor_closest_triangles(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK],
+                                          limit[s : s + QUERY_BLOCK]) for s in range(0, q_n, QUERY_BLOCK)]  # fmt: skip
         return torch.cat([d for d, _ in parts]), torch.cat([f for _, f in parts])
     flat = boxes.vertices.reshape(-1, 3)
     v_n = boxes.vertices.shape[1]
@@ -185,7 +236,7 @@ def closest_triangles(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points
     pair_q, key = torch.arange(q_n), frame.clone()  # key: the pair's box row, frame * 2 ** level + node
     for level in range(bvh.depth + 1):
         at = points[pair_q]
-        near = _box_distance(at, boxes.lo[level].reshape(-1, 3)[key], boxes.hi[level].reshape(-1, 3)[key])
+        near = _box_distance(at, *_node_boxes(boxes, level, key))
         pf, node = key >> level, key & ((1 << level) - 1)
         far = (at - flat[pf * v_n + bvh.corner(level, node)]).norm(dim=-1)  # a surface point's
         bound = bound.scatter_reduce(0, pair_q, far, "amin")
@@ -252,11 +303,33 @@ def _ray_crossings(o: Tensor, direction: Tensor, a: Tensor, b: Tensor, c: Tensor
 
 def winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: Tensor) -> Tensor:
     """``(Q,)`` the signed count of triangles a ray from each of ``points (Q, 3)`` (posed frame ``frame (Q,)``)
-    crosses: the winding number of a closed mesh (+-1 inside an outward or inward oriented one, 0 outside)."""
+    crosses: the winding number of a closed mesh (+-1 inside an outward or inward oriented one, 0 outside). On
+    the CPU the compiled walk answers, elsewhere the tensor walk (:func:`tensor_winding_numbers`)."""
+    rows = frame if boxes.rows is None else boxes.rows[frame]
+    if points.device.type != "cpu":
+        return tensor_winding_numbers(bvh, replace(boxes, rows=None), rows, points)
+    verts = boxes.vertices
+    pts = points.to(verts.dtype).contiguous().numpy()
+    direction = np.asarray(RAY_DIRECTION, dtype=pts.dtype)
+    direction = direction / np.linalg.norm(direction)
+    out = np.empty(len(pts), dtype=pts.dtype)
+    arrays = _walk_arrays(bvh, boxes)
+    rows_np = rows.contiguous().numpy()
+
+    def walk(b: slice) -> None:
+        winding_walk(*arrays, rows_np[b], pts[b], direction, out[b])
+
+    run_in_blocks(walk, len(pts))
+    return torch.from_numpy(out).to(points.dtype)
+
+
+def tensor_winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: Tensor) -> Tensor:
+    """:func:`winding_numbers` walked level by level in tensor operations (any device; the compiled walk's
+    reference)."""
     if boxes.rows is not None:
-        return winding_numbers(bvh, replace(boxes, rows=None), boxes.rows[frame], points)
+        return tensor_winding_numbers(bvh, replace(boxes, rows=None), boxes.rows[frame], points)
     if len(points) > QUERY_BLOCK:
-        return torch.cat([winding_numbers(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK])
+        return torch.cat([tensor_winding_numbers(bvh, boxes, frame[s : s + QUERY_BLOCK], points[s : s + QUERY_BLOCK])
                           for s in range(0, len(points), QUERY_BLOCK)])  # fmt: skip
     direction = points.new_tensor(RAY_DIRECTION)
     direction = direction / direction.norm()
@@ -264,17 +337,19 @@ def winding_numbers(bvh: TriangleBVH, boxes: PosedBoxes, frame: Tensor, points: 
     q_n = len(points)
     pair_q, key = torch.arange(q_n), frame.clone()  # key: the pair's box row, frame * 2 ** level + node
     for level in range(bvh.depth + 1):
-        lo, hi = boxes.lo[level].reshape(-1, 3)[key], boxes.hi[level].reshape(-1, 3)[key]
+        lo, hi = _node_boxes(boxes, level, key)
         keep = torch.nonzero(_ray_hits_box(points[pair_q], inv_dir, lo, hi)).flatten()
         pair_q, key = pair_q[keep], key[keep]
         if level < bvh.depth:
             pair_q, key = pair_q.repeat_interleave(2), torch.stack([2 * key, 2 * key + 1], dim=1).flatten()
     node = key & ((1 << bvh.depth) - 1)
     face, corners = _leaf_triangles(bvh, boxes, frame[pair_q], node)
-    cross = _ray_crossings(points[pair_q][:, None], direction, corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
+    cross = _ray_crossings(
+        points[pair_q][:, None], direction, corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    )
     cross = cross.masked_fill(face < 0, 0.0).sum(dim=1)
     return points.new_zeros(q_n).index_add(0, pair_q, cross)
 
 
 __all__ = ["PosedBoxes", "TriangleBVH", "build_bvh", "closest_triangles", "refit", "refit_changed",
-           "winding_numbers"]  # fmt: skip
+           "tensor_closest_triangles", "tensor_winding_numbers", "winding_numbers"]  # fmt: skip

@@ -162,7 +162,7 @@ def _part_pairs(setup: MeshSetup, t_name: str, posed: np.ndarray, near: float, r
 def _inside(tree: TriangleBVH, boxes: PosedBoxes, frame: Tensor, q: Tensor) -> Tensor:
     """``(Q,)`` whether each of ``q (Q, 3)`` is inside the closed part in posed frame ``frame (Q,)``: winding
     numbers for the points within the part's box (the others are outside)."""
-    lo, hi = boxes.lo[0][frame, 0], boxes.hi[0][frame, 0]  # the root's box per query
+    lo, hi = boxes.lo[frame, 0], boxes.hi[frame, 0]  # the root's box per query
     in_box = torch.nonzero(((q >= lo) & (q <= hi)).all(dim=-1)).flatten()
     inside = torch.zeros(len(q), dtype=torch.bool)
     inside[in_box] = winding_numbers(tree, boxes, frame[in_box], q[in_box]).abs() > 0.5

@@ -110,3 +110,45 @@ def test_a_bound_per_query_reads_as_the_common_bound_cut_at_each_querys_own() ->
     assert int(within.sum()) > 50 and int((~within & (face_all >= 0)).sum()) > 50  # both kinds were asked
     assert torch.equal(d[within], d_all[within]) and torch.equal(face[within], face_all[within])
     assert bool(torch.isinf(d[~within]).all()) and bool((face[~within] == -1).all())
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_the_compiled_walks_read_as_the_tensor_walks(leaf_size: int) -> None:
+    """The CPU's compiled walks against the tensor walks (the reference) on the same posed trees, with frames
+    stored once for several (``rows``), per-query bounds, and points on, near and inside the surface."""
+    from retarget_core.geometry.triangle_bvh import tensor_closest_triangles, tensor_winding_numbers
+
+    rest, faces, frames = _frames()
+    tree = build_bvh(rest, faces, leaf_size)
+    stored = refit(tree, torch.from_numpy(np.stack(frames)))
+    rng = np.random.default_rng(3)
+    boxes = PosedBoxes(stored.lo, stored.hi, stored.vertices, torch.from_numpy(rng.integers(0, 5, 7)))
+    fr = torch.from_numpy(rng.integers(0, 7, 6000))
+    on_surface = torch.from_numpy(np.stack(frames))[boxes.rows[fr[:300]], torch.from_numpy(faces[:300, 0])]
+    q = torch.cat([on_surface, torch.from_numpy(rng.uniform(-1.5, 1.8, (len(fr) - 300, 3)))])
+    bound = torch.from_numpy(rng.choice([0.0, 0.02, 0.3, 5.0], len(q)))
+    d, face = closest_triangles(tree, boxes, fr, q, bound)
+    d_ref, face_ref = tensor_closest_triangles(tree, boxes, fr, q, bound)
+    assert torch.allclose(d, d_ref, atol=1e-12, rtol=0) and torch.equal(torch.isinf(d), torch.isinf(d_ref))
+    assert float((face == face_ref).double().mean()) > 0.999  # ties at shared edges within 1e-12 may differ
+    assert int((face >= 0).sum()) > 1500 and int((d == 0).sum()) >= 300  # near, far and on-surface were asked
+    off = slice(300, None)  # on the surface a ray's crossings are a matter of rounding (either walk: not 0 or 1)
+    w, w_ref = winding_numbers(tree, boxes, fr[off], q[off]), tensor_winding_numbers(tree, boxes, fr[off], q[off])
+    assert torch.equal(w, w_ref) and int((w.abs() > 0.5).sum()) > 500
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_the_compiled_refit_gives_the_tensor_refits_boxes(leaf_size: int) -> None:
+    import retarget_core.geometry.triangle_bvh as tb
+
+    rest, faces, frames = _frames()
+    tree = build_bvh(rest, faces, leaf_size)
+    posed = torch.from_numpy(np.stack(frames * 4))  # 20 frames: blocks on threads
+    compiled = refit(tree, posed)
+    lo, hi = tb._leaf_boxes(tree, posed, torch.arange(len(tree.leaf_faces)))
+    leaves = compiled.level(tree.depth)
+    assert torch.equal(compiled.lo[:, leaves], lo) and torch.equal(compiled.hi[:, leaves], hi)
+    for level in range(tree.depth):
+        lo, hi = tb._parent_boxes(lo, hi)
+        here = compiled.level(tree.depth - 1 - level)
+        assert torch.equal(compiled.lo[:, here], lo) and torch.equal(compiled.hi[:, here], hi)
