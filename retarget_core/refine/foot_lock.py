@@ -20,8 +20,9 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
    only the pelvis drop touches keep their feet where the copy had them.
 5. Floor: heights come from a rigid model of the foot's vertices (each on its dominant joint, Foot or
    ToeBase); against skinning it is off by at most 1 mm on the shared bodies (measured), inside the 1 mm the
-   locks float. A foot solved outside its plants (fades, pelvis drop) that would dip below the floor is
-   lifted, smoothly (the toe kept above it).
+   locks float. A foot outside its plants (fades, pelvis drop, and a free foot the copy dips under the floor,
+   such as a dancer's foot sliding along it) that would be below the floor is lifted by the leg, smoothly (the
+   toe kept above it): the floor stage after this one cannot lift the body where the other foot stands planted.
 
 The stage computes on the CPU (a 300-frame clip is a few hundred small batched operations: faster there than
 on a GPU) and returns the motion on the device it came on.
@@ -379,10 +380,11 @@ def pelvis_drop(
 
 def floor_lift(leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_translations: Tensor, blend: int) -> Tensor:
     """``(F,)`` how far to raise the ankle target so the foot's lowest vertex stays above the floor, on the
-    frames the leg is solved outside its plants (the ramps, and where the pelvis moved), from the planned
-    foot pose and the rigid foot model (it matches skinning to 1 mm on the shared bodies); spread over
-    ``blend`` frames each side so it rises and sets smoothly."""
-    solved = (plan.driven | (drop > 0)) & ~plan.inside
+    frames outside its plants (the ramps, where the pelvis moved, and a free foot the copy dips under the floor:
+    a foot sliding on the floor in a dance is not planted), from the planned foot pose and the rigid foot model
+    (it matches skinning to 1 mm on the shared bodies); spread over ``blend`` frames each side so it rises and
+    sets smoothly."""
+    solved = ~plan.inside
     if not bool(solved.any()):
         return torch.zeros_like(drop)
     idx = torch.nonzero(solved).flatten()

@@ -230,3 +230,21 @@ def test_floor_lift_rises_from_the_plant_edge_without_a_step() -> None:
     assert bool((lift[inside] == 0).all())
     assert bool((lift[solved] >= sink[solved] - 1e-7).all())
     assert float(lift.diff().abs().max()) <= 2.0 * float(sink.diff().abs().max())  # before: 4.7 cm in one frame
+
+
+def test_a_free_foot_the_copy_dips_under_the_floor_is_lifted() -> None:
+    """A foot that slides along the floor, unplanted (a dance: it moves more than 1 cm a frame), and that the copy
+    sinks up to 3 cm under it, far from any plant: lifted at least to the floor where it sinks (the whole body
+    could not be: the other foot stands planted; the judge's ground penetration, issue 22), not elsewhere."""
+    frames, blend = 60, 4
+    leg = foot_lock.Leg("Left", 0, 1, 2, -1, 0, 1)
+    model = foot_lock.FootModel(torch.tensor([[0.0, -0.1, 0.0]]), torch.zeros(1, dtype=torch.bool))
+    f = torch.arange(frames)
+    sink = (0.03 * torch.sin((f - 25).clamp(0, 20) * torch.pi / 20)).clamp_min(0.0)  # frames 26-44
+    target = torch.zeros(frames, 3)
+    target[:, 1] = 0.1 - sink
+    none = torch.zeros(frames, dtype=torch.bool)
+    plan = foot_lock.LegPlan(target, rot.identity(frames), None, none, f < 4)  # a plant at the start only
+    lift = foot_lock.floor_lift(leg, plan, model, torch.zeros(frames), torch.zeros(3, 3), blend)
+    assert bool((lift >= sink - 1e-7).all()) and float(sink.max()) > 0.029
+    assert bool((lift[: 26 - 2 * blend] == 0).all()) and bool((lift[45 + 2 * blend :] == 0).all())  # its spread
