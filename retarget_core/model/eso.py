@@ -78,6 +78,7 @@ class ESOParams:
     w_hold: float = 100.0
     w_foot: float = 100.0  # planted foot joints held near the network's output (m^2 at 1.80 m), as the hands' targets
     knot_frames: int = 6  # state offsets live on knots this far apart (0.2 s at 30 fps)
+    w_smooth: float = 1000.0  # the change's own jerk: third differences of its joint moves (m^2 at 1.80 m)
 
 
 @dataclass
@@ -252,16 +253,20 @@ def _start(
 
 
 def _knot_weights(last: int, knot_frames: int) -> Tensor:
-    """Linear interpolation ``(last, K)`` from knots every ``knot_frames`` frames to frames ``0 .. last - 1``:
-    state offsets live on the knots so the result is smooth by construction (per-frame offsets jitter)."""
-    knots = torch.arange(0, last + knot_frames, knot_frames).clamp(max=max(last - 1, 0)).unique()
-    t = torch.arange(last, dtype=torch.float32)
-    seg = torch.searchsorted(knots.float(), t, right=True).clamp(1, max(len(knots) - 1, 1)) - 1
-    k0, k1 = knots[seg].float(), knots[(seg + 1).clamp(max=len(knots) - 1)].float()
-    frac = ((t - k0) / (k1 - k0).clamp_min(1.0)).clamp(0, 1)
-    interp = torch.zeros(last, len(knots))
-    interp[torch.arange(last), seg] = 1 - frac
-    interp[torch.arange(last), (seg + 1).clamp(max=len(knots) - 1)] += frac
+    """Uniform cubic B-spline weights ``(last, K)`` from control knots every ``knot_frames`` frames (one more
+    either side of the span) to frames ``0 .. last - 1``: state offsets live on the knots so the result is
+    smooth by construction (per-frame offsets jitter), with continuous second differences (knots joined by
+    straight lines put a kink, a jerk spike, at every knot: issue 22 item 4)."""
+    step = max(knot_frames, 1)
+    u = torch.arange(last, dtype=torch.float32) / step
+    seg = u.floor()
+    s = u - seg
+    basis = torch.stack([(1 - s) ** 3, 3 * s**3 - 6 * s**2 + 4, -3 * s**3 + 3 * s**2 + 3 * s + 1, s**3], dim=1) / 6
+    k_n = (int(seg.max()) if last else 0) + 4
+    interp = torch.zeros(last, k_n)
+    rows = torch.arange(last)
+    for j in range(4):  # frame t reads control knots seg .. seg + 3 (knot 0 lies one step before frame 0)
+        interp[rows, seg.long() + j] = basis[:, j]
     return interp
 
 
@@ -372,6 +377,7 @@ def _loss(pb: _Problem, p: ESOParams, dh: Tensor, goal: Tensor) -> Tensor:
     if pb.foot_cols:
         drift = ((gpos[:, pb.foot_idx] - gpos0_a[:, pb.foot_idx]) * s).pow(2).sum(-1)
         loss = loss + p.w_foot * (pb.planted[:, pb.foot_cols] * drift).sum()
+    loss = loss + p.w_smooth * _change_jerk(pb, gpos, gpos0_a, s)
     e_int = cached_energy(st.sent.sdf, *_skin_cached(kit, pb.plan, grot[pb.pen_a], gpos[pb.pen_a]), pb.cache)
     loss = loss + p.w_interpenetration * e_int.sum()
     if len(st.c_i):
@@ -380,6 +386,16 @@ def _loss(pb: _Problem, p: ESOParams, dh: Tensor, goal: Tensor) -> Tensor:
         held = gpos[pb.c_a, pb.hold_joint] - st.gpos[st.c_frame, pb.hold_joint]
         loss = loss + p.w_hold * (held * s).pow(2).sum(-1).sum()
     return loss
+
+
+def _change_jerk(pb: _Problem, gpos: Tensor, gpos0_a: Tensor, s: float) -> Tensor:
+    """The summed squared third differences (per frame, at 1.80 m) of the joints' moves ``gpos - gpos0_a (A, J,
+    3)`` on the active frames, zero elsewhere: the change itself rises and sets smoothly, wherever it is made."""
+    move = gpos.new_zeros(pb.last, *gpos.shape[1:])
+    move = move.index_put((pb.active,), (gpos - gpos0_a) * s)
+    if pb.last < 4:
+        return move.new_zeros(())
+    return (move[3:] - 3 * move[2:-1] + 3 * move[1:-2] - move[:-3]).pow(2).sum()
 
 
 def _solve(pb: _Problem, p: ESOParams) -> Tensor:
