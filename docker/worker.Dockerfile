@@ -4,7 +4,9 @@
 # UNTESTED: no Docker engine was available where this was written (see docs/service.md).
 
 FROM python:3.11-slim AS base
-ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 RETARGET_API_DATA_DIR=/data
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 RETARGET_API_DATA_DIR=/data \
+    NUMBA_CACHE_DIR=/home/retarget/.cache/numba
+# NUMBA_CACHE_DIR: the compiled tree walks (retarget_core/geometry/bvh_kernels.py) cached where the user may write
 # assimp-utils: FBX input (retarget_core reads FBX through the assimp command line)
 RUN apt-get update && apt-get install -y --no-install-recommends assimp-utils && rm -rf /var/lib/apt/lists/* \
     && useradd --uid 10001 --create-home retarget && mkdir -p /data && chown retarget /data
