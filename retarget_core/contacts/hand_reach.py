@@ -46,6 +46,7 @@ from retarget_core.metrics.acceptance_body import (
 )
 from retarget_core.motion import Motion
 
+BOX_BUDGET_BYTES = 320 * 2**20  # a chunk's part trees: 277 MB at 64 frames on the bulky sample, 1.1 GB on a 95k-vertex body
 HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
 COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
 ARM_CELL_M = 0.02  # the arms' penetration check: one arm vertex per cell of this size, and every hand vertex
@@ -69,6 +70,12 @@ class ReachBody:
     leg_area: tuple[Tensor, ...]
     trees: dict[str, TriangleBVH]
     scale: float  # body lengths per length at 1.80 m
+
+    def chunk_frames(self, most: int) -> int:
+        """Frames to pose together, at most ``most``: as many as keep every part's tree boxes of a chunk (low and
+        high corners of each node, float64) within :data:`BOX_BUDGET_BYTES`."""
+        per_frame = 48 * sum((2 << tree.depth) - 1 for tree in self.trees.values())
+        return max(1, min(most, BOX_BUDGET_BYTES // max(per_frame, 1)))
 
     def read_vertices(self) -> np.ndarray:
         """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's."""

@@ -62,7 +62,7 @@ class SwivelParams:
     # first; without the 10 and 35 degree steps, 005_12 x heldout_tall read 43 % frames > 1 cm, not 15 (the chain's 30)
     smooth_seconds: float = 0.1  # the turns' smoothing in time (a Gaussian's standard deviation)
     free_weight: float = 0.1  # a frame whose arm is not in the body: weakly toward no turn
-    chunk: int = 64  # frames posed together
+    chunk: int = 64  # frames posed together, at most (fewer on a body whose part trees would not fit: ReachBody)
 
 
 @dataclass
@@ -81,6 +81,7 @@ def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor
     """``(n, 2)`` the deepest sampled point of each of arms ``sides``' judged penetration (arm_penetration,
     without its hand's points: a swivel keeps the hand; 0 for the other side) at clip ``frames (n,)``."""
     out = torch.zeros(len(frames), 2, dtype=torch.float64)
+    chunk = rb.chunk_frames(chunk)
     for s in range(0, len(frames), chunk):
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
         for side in sides:
@@ -106,8 +107,9 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
     figures = ArmFigures.zeros(f_n)
     turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
     cap = ARM_DEPTH_CAP_M * rb.scale
-    for s in range(0, f_n, p.chunk):
-        rows = slice(s, min(s + p.chunk, f_n))
+    chunk = rb.chunk_frames(p.chunk)
+    for s in range(0, f_n, chunk):
+        rows = slice(s, min(s + chunk, f_n))
         frames = torch.arange(f_n)[rows]
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames))
         depths = torch.zeros(len(frames), 2, dtype=torch.float64)
@@ -121,7 +123,7 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
             search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
             if len(search):
                 out.wanted[frames[search], arm.side] = best_turns(ctx, rb, motion, arms, arm, pp, frames, search,
-                                                                  depth, turns, p.chunk)  # fmt: skip
+                                                                  depth, turns, chunk)  # fmt: skip
     return out, figures
 
 

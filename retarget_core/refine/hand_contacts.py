@@ -116,6 +116,7 @@ def measure_hands(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor
     f, h, g = torch.nonzero(acted[frames], as_tuple=True)
     state.distance[frames[f], h, g], state.hand_point[frames[f], h, g], state.surface_point[frames[f], h, g] = inf, nan, nan
     frames = frames[acted[frames].flatten(1).any(dim=1)]
+    chunk = rb.chunk_frames(chunk)
     for s in range(0, len(frames), chunk):
         fr = frames[s : s + chunk]
         _measure_queries(rb, posed_for_reach(rb, ctx.target, motion, fr), fr, src[fr], p, state, clear_only)
@@ -158,6 +159,7 @@ def measure_inside(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Te
     """The hands' :class:`HandDepth` at clip ``frames (n,)``, written into a copy of ``depth`` (every clip frame;
     the others keep their figures)."""
     out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
+    chunk = rb.chunk_frames(chunk)
     for s in range(0, len(frames), chunk):
         fr = frames[s : s + chunk]
         got = hand_depths(PosedParts(rb, posed_for_reach(rb, ctx.target, motion, fr)), p.depth_cap_m * rb.scale)

@@ -56,6 +56,7 @@ def arm_check(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor,
     on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check (:class:`ArmFigures`)."""
     figures = ArmFigures.zeros(len(frames))
     cap = ARM_DEPTH_CAP_M * rb.scale
+    chunk = rb.chunk_frames(chunk)
     for s in range(0, len(frames), chunk):
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
         for side in range(2):
