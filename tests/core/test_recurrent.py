@@ -16,8 +16,9 @@ from retarget_core.context import RefineContext
 from retarget_core.model import inference
 from retarget_core.model.data import build_dataset, draw_windows
 from retarget_core.model.energy import body_kit
-from retarget_core.model.eso import ESOParams, optimise
+from retarget_core.model.eso import ESOParams, ESOResult, optimise
 from retarget_core.model.features import from_6d, to_6d
+from retarget_core.model.inference import NetworkInputs
 from retarget_core.model.network import NetworkConfig, RecurrentRetargeter, load_network
 from retarget_core.model.train_recurrent import TrainConfig, train
 from retarget_core.retargeted import Prepared
@@ -83,7 +84,9 @@ def test_shipped_weights_retarget_a_sample_clip(ctx: RefineContext) -> None:
     assert out.report["max_joint_change_deg"] < 60
 
 
-def test_eso_lowers_the_energy_on_a_built_case(ctx: RefineContext, tmp_path: Path) -> None:
+def _eso_on_built_case(ctx: RefineContext, params: ESOParams) -> tuple[ESOResult, RecurrentRetargeter, NetworkInputs]:
+    """ESO with ``params`` on the built case (a small seeded network whose rotation head reads the states): its
+    result, the network and the network's inputs."""
     torch.manual_seed(0)
     model = RecurrentRetargeter(NetworkConfig(hidden=32, code=16)).eval()
     # Zero heads make the output independent of the states; a built case needs heads that read them.
@@ -91,7 +94,11 @@ def test_eso_lowers_the_energy_on_a_built_case(ctx: RefineContext, tmp_path: Pat
     inputs = inference.network_inputs(ctx)
     _, _, states, emb = inference.run_network(model, inputs)
     kit = body_kit(ctx.target, ctx.target_mapping, ctx.parts, ctx.sdf)
-    result = optimise(model, kit, inputs, states, emb, ctx.constraints, ctx.feet.labels, ESOParams(rounds=1, steps=8))
+    return optimise(model, kit, inputs, states, emb, ctx.constraints, ctx.feet.labels, params), model, inputs
+
+
+def test_eso_lowers_the_energy_on_a_built_case(ctx: RefineContext, tmp_path: Path) -> None:
+    result, model, inputs = _eso_on_built_case(ctx, ESOParams(rounds=1, steps=8))
     rep = result.report
     assert rep["frames_optimised"] > 0, rep
     assert rep["energy_after"] < rep["energy_before"], rep
@@ -209,14 +216,8 @@ def test_eso_change_is_smoother_with_its_jerk_term(ctx: RefineContext) -> None:
     from retarget_core.kinematics import forward_kinematics
 
     def change_jerk(w_smooth: float) -> float:
-        torch.manual_seed(0)
-        model = RecurrentRetargeter(NetworkConfig(hidden=32, code=16)).eval()
-        torch.nn.init.normal_(model.rotation_head.weight, std=0.02)
-        inputs = inference.network_inputs(ctx)
-        start_rot, start_trans, states, emb = inference.run_network(model, inputs)
-        kit = body_kit(ctx.target, ctx.target_mapping, ctx.parts, ctx.sdf)
-        params = ESOParams(w_smooth=w_smooth)
-        result = optimise(model, kit, inputs, states, emb, ctx.constraints, ctx.feet.labels, params)
+        result, model, inputs = _eso_on_built_case(ctx, ESOParams(w_smooth=w_smooth))
+        start_rot, start_trans, _, _ = inference.run_network(model, inputs)
         parents = ctx.target.skeleton.parents
         moved = forward_kinematics(parents, result.rotations, result.translations)[1]
         shape_r, shape_t = result.rotations.shape, result.translations.shape
