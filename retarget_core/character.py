@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import torch
@@ -128,22 +129,33 @@ class Character:
         return kinematics.linear_blend_skinning(self.vertices[index], self.dense_weights()[index], mats)
 
     def pose_vertex_subset(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
-                           chunk: int = 64) -> Tensor:  # fmt: skip
+                           chunk: int | None = None) -> Tensor:  # fmt: skip
         """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` only (LBS on the joints that skin them),
-        from world joint transforms ``(F, J, 4)`` and ``(F, J, 3)``, ``chunk`` frames at a time."""
+        from world joint transforms ``(F, J, 4)`` and ``(F, J, 3)``, ``chunk`` frames at a time (default: as many
+        as keep a chunk's blended matrices within :data:`kinematics.SKINNING_CHUNK_BYTES`)."""
+        out = list(self._subset_chunks(index, global_rotations, global_positions, chunk))
+        return torch.cat(out) if out else self.vertices.new_zeros(0, len(index), 3)
+
+    def lowest_heights(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
+                       chunk: int | None = None) -> Tensor:  # fmt: skip
+        """``(F,)`` the height of the lowest of the vertices ``index (N,)`` on each frame: :meth:`pose_vertex_subset`
+        reduced chunk by chunk, so the posed frames are never all held at once."""
+        out = [c[..., 1].amin(-1) for c in self._subset_chunks(index, global_rotations, global_positions, chunk)]
+        return torch.cat(out) if out else self.vertices.new_zeros(0)
+
+    def _subset_chunks(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
+                       chunk: int | None) -> Iterator[Tensor]:  # fmt: skip
+        """:meth:`pose_vertex_subset`, one ``(f, N, 3)`` chunk of frames after another."""
         weights = self.dense_weights()[index]  # (N, J)
         used = torch.nonzero(weights.sum(0) > 0).flatten()
         rest_rot, rest_pos = self.skeleton.rest_global()
         w, rest = weights[:, used], self.vertices[index]
-        out = []
-        for s in range(0, global_rotations.shape[0], chunk):
-            mats = kinematics.skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[s : s + chunk, used],
-                                                global_positions[s : s + chunk, used])  # fmt: skip
+        step = chunk or max(1, kinematics.SKINNING_CHUNK_BYTES // max(1, 48 * len(index)))
+        for s in range(0, global_rotations.shape[0], step):
+            mats = kinematics.skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[s : s + step, used],
+                                                global_positions[s : s + step, used])  # fmt: skip
             blended = torch.einsum("nj,fjab->fnab", w.to(mats.dtype), mats)  # (f, N, 3, 4)
-            out.append(torch.einsum("fnab,nb->fna", blended[..., :3], rest.to(mats.dtype)) + blended[..., 3])
-        if not out:
-            return self.vertices.new_zeros(0, len(index), 3)
-        return torch.cat(out)
+            yield torch.einsum("fnab,nb->fna", blended[..., :3], rest.to(mats.dtype)) + blended[..., 3]
 
     def vertex_normals(self) -> Tensor:
         """Area-weighted unit vertex normals ``(V, 3)`` of the rest mesh."""

@@ -15,6 +15,8 @@ from torch import Tensor
 
 from retarget_core import rotations as rot
 
+SKINNING_CHUNK_BYTES = 48 * 2**20  # a chunk's blended matrices (float32): about 64 frames of a 15k-vertex body
+
 
 def forward_kinematics(
     parents: Sequence[int], local_rotations: Tensor, local_translations: Tensor
@@ -81,15 +83,19 @@ def dense_weights(joint_indices: Tensor, joint_weights: Tensor, num_joints: int)
     return w
 
 
-def linear_blend_skinning(rest_vertices: Tensor, weights: Tensor, matrices: Tensor, frame_chunk: int = 64) -> Tensor:
+def linear_blend_skinning(rest_vertices: Tensor, weights: Tensor, matrices: Tensor,
+                          frame_chunk: int | None = None) -> Tensor:  # fmt: skip
     """Posed vertices ``(..., V, 3)`` from rest vertices ``(V, 3)``, dense weights ``(V, J)`` and per-joint
-    matrices ``(..., J, 3, 4)`` (from :func:`skinning_matrices`). Frames are processed in chunks to bound memory."""
+    matrices ``(..., J, 3, 4)`` (from :func:`skinning_matrices`). Frames are processed in chunks to bound memory
+    (default: as many as keep a chunk's blended matrices within :data:`SKINNING_CHUNK_BYTES`)."""
     batch = matrices.shape[:-3]
     flat = matrices.reshape(-1, matrices.shape[-3], 12)
     homo = torch.cat([rest_vertices, torch.ones_like(rest_vertices[:, :1])], dim=-1)  # (V, 4)
-    out = []
-    for start in range(0, flat.shape[0], frame_chunk):
-        blended = torch.matmul(weights, flat[start : start + frame_chunk])  # (C, V, 12)
+    v_n = rest_vertices.shape[0]
+    step = frame_chunk or max(1, SKINNING_CHUNK_BYTES // max(1, 12 * flat.element_size() * v_n))
+    out = flat.new_empty(flat.shape[0], v_n, 3)  # filled chunk by chunk: the frames are not held twice
+    for start in range(0, flat.shape[0], step):
+        blended = torch.matmul(weights, flat[start : start + step])  # (C, V, 12)
         blended = blended.reshape(blended.shape[0], -1, 3, 4)
-        out.append((blended @ homo.unsqueeze(-1)).squeeze(-1))
-    return torch.cat(out, dim=0).reshape(*batch, rest_vertices.shape[0], 3)
+        out[start : start + step] = (blended @ homo.unsqueeze(-1)).squeeze(-1)
+    return out.reshape(*batch, v_n, 3)

@@ -28,6 +28,7 @@ from retarget_core.io.gltf_write import write_glb
 from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs, JobOutputs, ProgressCallback
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.measure import SourceContactResult, carry_contacts, detect_source_contacts, torch_threads
+from retarget_core.memory import release_free_memory
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.motion import Motion
 from retarget_core.normalize import NormalizationReport
@@ -59,6 +60,7 @@ class StageClock:
         self._tell(name, self.done)
         start = time.perf_counter()
         yield
+        release_free_memory()  # a stage's freed arrays go back to the system, not on top of the next one's
         self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - start, 4)
         self.done = min(1.0, self.done + progress_weight(name))
         self._tell(name, self.done)

@@ -81,7 +81,7 @@ def lowest_foot_vertex(character: Character, mapping: JointMapping, motion: Moti
     feet = foot_vertices(character, mapping)
     index = torch.cat([feet.left, feet.right])
     grot, gpos = motion.global_transforms()
-    return character.pose_vertex_subset(index, grot, gpos)[..., 1].amin(-1)
+    return character.lowest_heights(index, grot, gpos)
 
 
 def _reference(lowest: Tensor, planted: Tensor) -> float:

@@ -74,7 +74,7 @@ class ReachBody:
     def chunk_frames(self, most: int) -> int:
         """Frames to pose together, at most ``most``: as many as keep every part's tree boxes of a chunk (low and
         high corners of each node, float64) within :data:`BOX_BUDGET_BYTES`."""
-        per_frame = 48 * sum((2 << tree.depth) - 1 for tree in self.trees.values())
+        per_frame = sum(tree.box_bytes() for tree in self.trees.values())
         return max(1, min(most, BOX_BUDGET_BYTES // max(per_frame, 1)))
 
     def read_vertices(self) -> np.ndarray:

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.character import Character
+from retarget_core.kinematics import SKINNING_CHUNK_BYTES
 
 
 def rotvec_to_matrix(r: Tensor) -> Tensor:
@@ -48,10 +49,24 @@ class PointPoser:
         """From local rotation matrices ``(F, J, 3, 3)`` and translations ``(F, J, 3)``: posed points
         ``(F, P, 3)``, segment transforms ``(F, S, 3, 4)`` (rest world -> posed world), joint positions ``(F, J, 3)``."""
         mats, gpos = self.transforms(local_rot, local_trans)
+        return self.skin(mats), mats.index_select(1, self.seg_joints), gpos
+
+    def skin(self, mats: Tensor) -> Tensor:
+        """Posed points ``(F, P, 3)`` from skinning transforms ``(F, J, 3, 4)``; without gradients, a chunk of
+        frames at a time (each frame's figures are the same: only the memory they take at once differs)."""
+        if torch.is_grad_enabled() and mats.requires_grad:
+            return self._skin(mats)
+        step = max(1, SKINNING_CHUNK_BYTES // max(1, 24 * mats.element_size() * len(self.points)))
+        out = mats.new_empty(mats.shape[0], len(self.points), 3)
+        for s in range(0, mats.shape[0], step):
+            out[s : s + step] = self._skin(mats[s : s + step])
+        return out
+
+    def _skin(self, mats: Tensor) -> Tensor:
+        """:meth:`skin` of all frames ``mats (F, J, 3, 4)`` at once (their blended transforms held together)."""
         f_n, j_n = mats.shape[:2]
         blended = torch.matmul(self.weights, mats.reshape(f_n, j_n, 12)).reshape(f_n, -1, 3, 4)  # (F, P, 3, 4)
-        posed = (blended[..., :3] * self.rest[None, :, None, :]).sum(-1) + blended[..., 3]
-        return posed, mats.index_select(1, self.seg_joints), gpos
+        return (blended[..., :3] * self.rest[None, :, None, :]).sum(-1) + blended[..., 3]
 
     def transforms(self, local_rot: Tensor, local_trans: Tensor) -> tuple[Tensor, Tensor]:
         """Skinning transforms ``(F, J, 3, 4)`` (rest world -> posed world) and joint positions ``(F, J, 3)`` from

@@ -38,6 +38,10 @@ class TriangleBVH:
     leaf_faces: Tensor
     depth: int
 
+    def box_bytes(self) -> int:
+        """Bytes of one posed frame's boxes (:class:`PosedBoxes`: low and high corners of every node, float64)."""
+        return 48 * ((2 << self.depth) - 1)
+
     def corner(self, level: int, node: Tensor) -> Tensor:
         """``(P,)`` a vertex of a triangle under each of ``node (P,)`` at ``level`` (bounds its distance)."""
         first_leaf = node * (1 << (self.depth - level))

@@ -130,7 +130,7 @@ def lowest_foot_heights(character: Character, mapping: JointMapping, motion: Mot
     """``(F, 2)`` height of the lowest vertex of each foot (m, on the body's own scale)."""
     grot, gpos = motion.global_transforms()
     feet = foot_vertices(character, mapping)
-    return torch.stack([character.pose_vertex_subset(v, grot, gpos)[..., 1].amin(-1) for v in feet.sides()], dim=1)
+    return torch.stack([character.lowest_heights(v, grot, gpos) for v in feet.sides()], dim=1)
 
 
 def lowest_vertex_heights(character: Character, motion: Motion, frame_chunk: int = 64) -> Tensor:

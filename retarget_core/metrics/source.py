@@ -72,7 +72,7 @@ def foot_vertex_heights(body: Character, parts: BodyParts, motion: Motion, chunk
         idx = torch.arange(body.num_vertices)
     grot, gpos = motion.global_transforms()
     with torch.no_grad():  # only the feet are posed
-        return body.pose_vertex_subset(idx, grot, gpos, chunk)[..., 1].amin(-1)
+        return body.lowest_heights(idx, grot, gpos, chunk)
 
 
 def _percent(mask: Tensor) -> float:

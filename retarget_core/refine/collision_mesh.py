@@ -38,6 +38,7 @@ MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm":
 
 SKIN_DRAG_WEIGHT = 0.01  # torso vertices with more arm skin weight than this move with the arm (the bulge)
 TESTER_REACH_M = 0.20  # arm vertices within this (rest, at 1.80 m) of such torso vertices are tested
+CHUNK_BUDGET_BYTES = 160 * 2**20  # posed frames and part-tree boxes held at once: 32 frames on MakeHuman bodies
 
 
 @dataclass
@@ -188,12 +189,15 @@ def _queries(setup: MeshSetup, t_name: str, posed: np.ndarray, reach: float) -> 
 
 def mesh_pairs_of_motion(character: Character, setup: MeshSetup, rotations: Tensor, translations: Tensor,
                          frames: Tensor, near: float, chunk: int = 32) -> MeshPairs:  # fmt: skip
-    """:func:`find_mesh_pairs` at clip ``frames (n,)`` of local ``rotations (F, J, 4)`` / ``translations``;
-    the pairs' ``frame`` indexes ``frames``."""
+    """:func:`find_mesh_pairs` at clip ``frames (n,)`` of local ``rotations (F, J, 4)`` / ``translations``, at most
+    ``chunk`` frames at a time (fewer where a chunk's posed vertices and largest part tree's boxes would pass
+    :data:`CHUNK_BUDGET_BYTES`); the pairs' ``frame`` indexes ``frames``."""
     from retarget_core import kinematics
 
     out: list[MeshPairs] = []
     read = setup.read_vertices()  # only these are posed: the rest of the array stays zero, unread
+    per_frame = 24 * character.num_vertices + max((t.box_bytes() for t in setup.trees.values()), default=0)
+    chunk = max(1, min(chunk, CHUNK_BUDGET_BYTES // per_frame))
     with torch.no_grad():
         for s in range(0, len(frames), chunk):
             fr = frames[s : s + chunk]

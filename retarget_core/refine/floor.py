@@ -98,7 +98,7 @@ def body_heights(ctx: RefineContext, motion: Motion) -> tuple[Tensor, Tensor]:
     grot, gpos = motion.global_transforms()
     body = ctx.parts.body
     index = torch.arange(ctx.target.num_vertices) if body is None else torch.nonzero(body).flatten()
-    lowest = ctx.target.pose_vertex_subset(index, grot, gpos)[..., 1].amin(-1)
+    lowest = ctx.target.lowest_heights(index, grot, gpos)
     return lowest.double(), lowest_foot_heights(ctx.target, ctx.target_mapping, motion).double()
 
 

@@ -305,6 +305,23 @@ def test_culled_contact_rows_give_the_same_instance_distances(bulky: Character) 
     assert sum(len(r) for _, r in culled.segment_rows()) < sum(len(r) for _, r in targets.segment_rows())
 
 
+def test_points_posed_without_gradients_in_chunks_are_the_same(bulky: Character, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without gradients the collision stage's point poser skins a few frames at a time (a memory bound on large
+    characters): the same figures, bit for bit, as all frames at once with gradients."""
+    from retarget_core.geometry import point_poser
+    from retarget_core.geometry.point_poser import PointPoser
+
+    motion, _, _ = _hand_in_belly(bulky, 0.01, 5)
+    poser = PointPoser(bulky, torch.arange(bulky.num_vertices)[::5], [0, 1])
+    local = roma.unitquat_to_rotmat(motion.rotations.float()).requires_grad_(True)
+    whole = poser(local, motion.translations.float())[0]
+    monkeypatch.setattr(point_poser, "SKINNING_CHUNK_BYTES", 1)  # one frame per chunk
+    with torch.no_grad():
+        chunked = poser(local, motion.translations.float())[0]
+    assert whole.requires_grad and not chunked.requires_grad
+    assert torch.equal(chunked, whole.detach())
+
+
 def test_planted_feet_weigh_more_on_their_planted_frames(bulky: Character) -> None:
     from dataclasses import replace
 

@@ -11,7 +11,10 @@ import torch
 
 from retarget_core import kinematics
 from retarget_core import rotations as rot
+from retarget_core.character import Character
 from retarget_core.io.gltf_read import read_gltf
+
+SAMPLES = Path(__file__).resolve().parents[2] / "retarget_core" / "data" / "samples" / "characters"
 
 
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:
@@ -120,6 +123,40 @@ def test_posing_a_vertex_subset_matches_posing_the_whole_mesh() -> None:
     index = torch.tensor([0, 17, ch.num_vertices // 2, ch.num_vertices - 1])
     whole = ch.pose_vertices(grot, gpos)[:, index]
     assert torch.allclose(ch.pose_vertex_subset(index, grot, gpos, chunk=2), whole, atol=1e-5)
+
+
+def _random_pose(ch: Character, f_n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """World joint transforms ``(f_n, J, 4)``, ``(f_n, J, 3)`` of a random pose of ``ch``."""
+    g = torch.Generator().manual_seed(seed)
+    local = rot.normalize(torch.tensor([0.0, 0.0, 0.0, 1.0]) + 0.2 * torch.randn(f_n, ch.skeleton.num_joints, 4, generator=g))
+    trans = ch.skeleton.rest_translations.expand(f_n, -1, -1).clone()
+    return kinematics.forward_kinematics(ch.skeleton.parents, local, trans)
+
+
+def test_lowest_heights_are_the_posed_subset_lowest_per_frame() -> None:
+    """``Character.lowest_heights`` (floor, placement, the feet measures) reads the lowest posed vertex of the
+    subset on each frame, whatever the chunk, without holding every posed frame."""
+    ch = read_gltf(SAMPLES / "mh_female_skinny.glb").character
+    assert ch is not None
+    grot, gpos = _random_pose(ch, 7)
+    index = torch.arange(0, ch.num_vertices, 3)
+    expected = ch.pose_vertex_subset(index, grot, gpos)[..., 1].amin(-1)
+    for chunk in (None, 1, 3, 64):
+        assert torch.equal(ch.lowest_heights(index, grot, gpos, chunk), expected)
+    assert ch.lowest_heights(index, grot[:0], gpos[:0]).shape == (0,)
+
+
+def test_skinning_gives_the_same_frames_in_any_chunk() -> None:
+    """Skinning in chunks of frames (a memory bound) gives each frame bit for bit what it gives alone."""
+    ch = read_gltf(SAMPLES / "mh_female_skinny.glb").character
+    assert ch is not None
+    grot, gpos = _random_pose(ch, 6, seed=1)
+    rest_rot, rest_pos = ch.skeleton.rest_global()
+    mats = kinematics.skinning_matrices(rest_rot, rest_pos, grot, gpos)
+    weights = ch.dense_weights()
+    alone = torch.stack([kinematics.linear_blend_skinning(ch.vertices, weights, mats[f : f + 1])[0] for f in range(6)])
+    for chunk in (None, 1, 4):
+        assert torch.equal(kinematics.linear_blend_skinning(ch.vertices, weights, mats, chunk), alone)
 
 
 def _joint_by_joint(parents: list[int], local_rotations: torch.Tensor, local_translations: torch.Tensor
