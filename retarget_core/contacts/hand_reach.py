@@ -16,6 +16,7 @@ to posing and refitting everything.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -416,6 +417,16 @@ def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames:
     return posed
 
 
+def posed_chunks(rb: ReachBody, character: Character, motion: Motion, frames: Tensor,
+                 most: int = 64) -> Iterator[tuple[Tensor, Tensor]]:  # fmt: skip
+    """``(fr (m,), posed (m, V, 3))``: :func:`posed_for_reach` of clip ``frames (n,)``, :meth:`ReachBody.chunk_frames`
+    of ``most`` frames at a time."""
+    chunk = rb.chunk_frames(most)
+    for s in range(0, len(frames), chunk):
+        fr = frames[s : s + chunk]
+        yield fr, posed_for_reach(rb, character, motion, fr)
+
+
 @dataclass
 class MovedPoses:
     """:func:`posed_for_reach` of ``T`` ways of moving the same ``m`` frames, made from ``base (m, V, 3)``, those
@@ -459,4 +470,4 @@ def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Moti
 
 
 __all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "hand_reach", "one_per_cell",
-           "posed_for_reach", "posed_moved", "MovedParts", "MovedPoses", "reach_body"]
+           "posed_chunks", "posed_for_reach", "posed_moved", "MovedParts", "MovedPoses", "reach_body"]

@@ -66,9 +66,9 @@ class FrameCheck:
 def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translations: Tensor, frames: Tensor,
                  contacts: ContactInstances, tolerance: float, chunk: int = 64,
                  allowed: Tensor | None = None) -> FrameCheck:  # fmt: skip
-    """Pose all vertices at clip ``frames (n,)`` of the local ``rotations (F, J, 4)`` / ``translations (F, J, 3)``
-    and measure them (no gradients); ``allowed (S, S)``: the segment pairs measured (default ``sdf.allowed``; a
-    contact's hand and touched part must be among them)."""
+    """Pose the body's vertices (accessories left out) at clip ``frames (n,)`` of the local ``rotations (F, J,
+    4)`` / ``translations (F, J, 3)`` and measure them (no gradients); ``allowed (S, S)``: the segment pairs
+    measured (default ``sdf.allowed``; a contact's hand and touched part must be among them)."""
     parts = sdf.parts
     cluster = torch.tensor(parts.cluster, dtype=torch.long)
     n = len(frames)
@@ -80,13 +80,14 @@ def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translat
     pos_of[frames] = torch.arange(n)
     c_pos = pos_of[contacts.frame] if contacts.count else torch.zeros(0, dtype=torch.long)
     area = sdf.vertex_area
+    body = None if parts.body is None else torch.nonzero(parts.body).flatten()  # accessories are never tested
     with torch.no_grad():
         for s in range(0, n, chunk):
             fr = frames[s : s + chunk]
             grot, gpos = kinematics.forward_kinematics(character.skeleton.parents, rotations[fr], translations[fr])
-            verts = character.pose_vertices(grot, gpos)
+            verts = character.pose_vertices(grot, gpos) if body is None else character.pose_rows(body, grot, gpos)
             mats = segment_matrices(character, parts, grot, gpos)
-            samples = sample_pairs(sdf, verts, mats, allowed)
+            samples = sample_pairs(sdf, verts, mats, allowed, vertices=body)
             d = vertex_depths(sdf, samples, len(fr))
             depth.append(VertexDepths.from_dense(d, torch.arange(s, s + len(fr)), n))
             vol[s : s + len(fr)] = (d * area).sum(-1)

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from retarget_core import rotations as rot
 from retarget_core.contacts.hand_depth import HandDepth, hand_depths
-from retarget_core.contacts.hand_reach import PosedParts, Reach, ReachBody, hand_reach, posed_for_reach, reach_body
+from retarget_core.contacts.hand_reach import PosedParts, Reach, ReachBody, hand_reach, posed_chunks, reach_body
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
 from retarget_core.motion import Motion
@@ -107,7 +107,31 @@ def measure_hands(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor
     it (searched up to ``reach_m``) or stays clear of it (up to ``clear_m``; ``clear_only``: only these); ``src
     (F, 2, 4)`` from :func:`source_groups`. The other entries keep their figures in ``state`` (a copy is
     returned)."""
-    f_n = motion.num_frames
+    state, acted = _cleared(state, src, p, frames, motion.num_frames, clear_only)
+    for fr, posed in posed_chunks(rb, ctx.target, motion, frames[acted[frames]], chunk):
+        _measure_queries(rb, posed, fr, src[fr], p, state, clear_only)
+    return state
+
+
+def measure_both(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor, p: HandContactParams,
+                 frames: Tensor, state: HandState | None = None, depth: HandDepth | None = None,
+                 chunk: int = 64) -> tuple[HandState, HandDepth]:  # fmt: skip
+    """:func:`measure_hands` and :func:`measure_inside` of the same ``frames (n,)``, each chunk of frames posed
+    once for both."""
+    state, acted = _cleared(state, src, p, frames, motion.num_frames)
+    out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
+    for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
+        keep = acted[fr]
+        if bool(keep.any()):
+            _measure_queries(rb, posed[keep], fr[keep], src[fr[keep]], p, state)
+        _write_depths(out, fr, hand_depths(PosedParts(rb, posed), p.depth_cap_m * rb.scale))
+    return state, out
+
+
+def _cleared(state: HandState | None, src: Tensor, p: HandContactParams, frames: Tensor, f_n: int,
+             clear_only: bool = False) -> tuple[HandState, Tensor]:  # fmt: skip
+    """A copy of ``state`` (a new one when None) with the entries measured at ``frames (n,)`` cleared, and ``(F,)``
+    the clip frames with an entry the stage acts on."""
     inf, nan = float("inf"), float("nan")
     state = (HandState(torch.full((f_n, 2, 4), inf, dtype=torch.float64), torch.full((f_n, 2, 4, 3), nan, dtype=torch.float64),
                        torch.full((f_n, 2, 4, 3), nan, dtype=torch.float64)) if state is None
@@ -115,12 +139,7 @@ def measure_hands(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor
     acted = (src > p.far_m) | ((src < p.contact_m) & (not clear_only))
     f, h, g = torch.nonzero(acted[frames], as_tuple=True)
     state.distance[frames[f], h, g], state.hand_point[frames[f], h, g], state.surface_point[frames[f], h, g] = inf, nan, nan
-    frames = frames[acted[frames].flatten(1).any(dim=1)]
-    chunk = rb.chunk_frames(chunk)
-    for s in range(0, len(frames), chunk):
-        fr = frames[s : s + chunk]
-        _measure_queries(rb, posed_for_reach(rb, ctx.target, motion, fr), fr, src[fr], p, state, clear_only)
-    return state
+    return state, acted.flatten(1).any(dim=1)
 
 
 def _measure_queries(rb: ReachBody, posed: Tensor, frames: Tensor, src: Tensor, p: HandContactParams,
@@ -159,12 +178,14 @@ def measure_inside(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Te
     """The hands' :class:`HandDepth` at clip ``frames (n,)``, written into a copy of ``depth`` (every clip frame;
     the others keep their figures)."""
     out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
-    chunk = rb.chunk_frames(chunk)
-    for s in range(0, len(frames), chunk):
-        fr = frames[s : s + chunk]
-        got = hand_depths(PosedParts(rb, posed_for_reach(rb, ctx.target, motion, fr)), p.depth_cap_m * rb.scale)
-        out.depth[fr], out.hand_point[fr], out.surface_point[fr] = got.depth, got.hand_point, got.surface_point
+    for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
+        _write_depths(out, fr, hand_depths(PosedParts(rb, posed), p.depth_cap_m * rb.scale))
     return out
+
+
+def _write_depths(out: HandDepth, frames: Tensor, got: HandDepth) -> None:
+    """``got``, the depths of clip ``frames (n,)``, into ``out`` (every clip frame)."""
+    out.depth[frames], out.hand_point[frames], out.surface_point[frames] = got.depth, got.hand_point, got.surface_point
 
 
 def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
@@ -260,8 +281,8 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     if rb is None or not all(len(h) for h in rb.hand_points):
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm with a hand mesh", "seconds": 0.0})
     src = source_groups(ctx)
-    state = first = measure_hands(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
-    inside = measure_inside(ctx, rb, motion, torch.arange(motion.num_frames), p)
+    state, inside = measure_both(ctx, rb, motion, src, p, torch.arange(motion.num_frames))
+    first = state
     deep_before = int((inside.depth > p.out_m * rb.scale).any(dim=2).any(dim=1).sum())
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
@@ -273,8 +294,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
         total = total + step
         again = torch.nonzero(step.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
         moved_motion = apply_moves(motion, arms, total, p.max_reach)
-        state = measure_hands(ctx, rb, moved_motion, src, p, again, state)
-        inside = measure_inside(ctx, rb, moved_motion, again, p, inside)
+        state, inside = measure_both(ctx, rb, moved_motion, src, p, again, state, inside)
     moved = contact_figures(src, state, rb.scale, p)
     changed = torch.nonzero(total.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
     weight = (never_worse_share(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.contacts.arm_depth import arm_penetration
-from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_for_reach
+from retarget_core.contacts.hand_reach import PosedParts, ReachBody, posed_chunks
 from retarget_core.context import RefineContext
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.motion import Motion
@@ -56,11 +56,12 @@ def arm_check(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor,
     on clip ``frames (n,)``, as a :class:`FrameCheck` for the never-worse check (:class:`ArmFigures`)."""
     figures = ArmFigures.zeros(len(frames))
     cap = ARM_DEPTH_CAP_M * rb.scale
-    chunk = rb.chunk_frames(chunk)
-    for s in range(0, len(frames), chunk):
-        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
+    s = 0
+    for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
+        pp = PosedParts(rb, posed)
         for side in range(2):
-            figures.add(slice(s, s + chunk), *arm_penetration(pp, side, cap))
+            figures.add(slice(s, s + len(fr)), *arm_penetration(pp, side, cap))
+        s += len(fr)
     return figures.check(frames, ctx.target.num_vertices)
 
 

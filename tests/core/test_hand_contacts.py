@@ -217,3 +217,26 @@ def test_part_trees_posed_in_smaller_chunks_give_the_same_stage(skinny, monkeypa
     small = hand_contacts.run(_context(ch, mapping, source, target), target)
     assert whole.report["frames_changed"] > 0
     assert torch.allclose(small.motion.rotations, whole.motion.rotations, atol=1e-9, rtol=0)
+
+
+def test_measuring_both_on_one_posing_equals_measuring_each(skinny) -> None:  # type: ignore[no-untyped-def]
+    """The stage poses each chunk once for its distances and its depths (``measure_both``): the same figures as
+    :func:`measure_hands` and :func:`measure_inside` posing their own frames, on every frame and on a subset."""
+    ch, mapping, rb = skinny
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    target = _lifted(source, mapping, LEFT, torch.tensor([-side * 0.03, 0.0, 0.0], dtype=torch.float64))
+    ctx = _context(ch, mapping, source, target)
+    p = hand_contacts.HandContactParams()
+    src = hand_contacts.source_groups(ctx)
+    every = torch.arange(target.num_frames)
+    state, depth = hand_contacts.measure_both(ctx, rb, target, src, p, every, chunk=7)
+    some = every[::3]
+    again, deeper = hand_contacts.measure_both(ctx, rb, target, src, p, some, state, depth, chunk=5)
+    for frames, got, (s, d) in ((every, (state, depth), (None, None)), (some, (again, deeper), (state, depth))):
+        hands = hand_contacts.measure_hands(ctx, rb, target, src, p, frames, s)
+        inside = hand_contacts.measure_inside(ctx, rb, target, frames, p, d)
+        for a, b in ((got[0], hands), (got[1], inside)):
+            for x, y in zip(vars(a).values(), vars(b).values(), strict=True):
+                assert torch.equal(x.nan_to_num(-1.0), y.nan_to_num(-1.0))
+    assert bool((depth.depth > 0).any()) and bool(torch.isfinite(state.distance).any())
