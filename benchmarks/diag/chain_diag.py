@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, 
 from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
 
 FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts", "foot_accuracy",
-           "end_effector_error_cm", "jerk_ratio", "ground_penetration_cm", "skate_cm")  # fmt: skip
+           "end_effector_error_cm", "jerk_ratio", "ground_penetration_cm", "skate_cm", "head_percent")  # fmt: skip
 
 
 def _rounded(value: float | None) -> float | None:
