@@ -40,6 +40,7 @@ from retarget_core.contacts.hand_reach import (
     MovedParts,
     PosedParts,
     ReachBody,
+    posed_chunks,
     posed_for_reach,
     posed_moved,
     reach_body,
@@ -81,11 +82,12 @@ def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor
     """``(n, 2)`` the deepest sampled point of each of arms ``sides``' judged penetration (arm_penetration,
     without its hand's points: a swivel keeps the hand; 0 for the other side) at clip ``frames (n,)``."""
     out = torch.zeros(len(frames), 2, dtype=torch.float64)
-    chunk = rb.chunk_frames(chunk)
-    for s in range(0, len(frames), chunk):
-        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames[s : s + chunk]))
+    s = 0
+    for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
+        pp = PosedParts(rb, posed)
         for side in sides:
-            out[s : s + chunk, side] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
+            out[s : s + len(fr), side] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
+        s += len(fr)
     return out
 
 

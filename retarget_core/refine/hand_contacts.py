@@ -116,8 +116,8 @@ def measure_hands(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor
 def measure_both(ctx: RefineContext, rb: ReachBody, motion: Motion, src: Tensor, p: HandContactParams,
                  frames: Tensor, state: HandState | None = None, depth: HandDepth | None = None,
                  chunk: int = 64) -> tuple[HandState, HandDepth]:  # fmt: skip
-    """:func:`measure_hands` and :func:`measure_inside` of the same ``frames (n,)``, each chunk of frames posed
-    once for both."""
+    """:func:`measure_hands` of ``frames (n,)``, and the hands' :class:`HandDepth` there, written into a copy of
+    ``depth`` (every clip frame; the others keep their figures): each chunk of frames posed once for both."""
     state, acted = _cleared(state, src, p, frames, motion.num_frames)
     out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
     for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
@@ -171,16 +171,6 @@ def _keep_nearest(state: HandState, f: Tensor, h: Tensor, g: Tensor, r: Reach) -
     state.distance[f[k], h[k], g[k]] = r.distance[k]
     state.hand_point[f[k], h[k], g[k]] = r.hand_point[k]
     state.surface_point[f[k], h[k], g[k]] = r.surface_point[k]
-
-
-def measure_inside(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, p: HandContactParams,
-                   depth: HandDepth | None = None, chunk: int = 64) -> HandDepth:  # fmt: skip
-    """The hands' :class:`HandDepth` at clip ``frames (n,)``, written into a copy of ``depth`` (every clip frame;
-    the others keep their figures)."""
-    out = HandDepth.empty(motion.num_frames) if depth is None else HandDepth(*(t.clone() for t in vars(depth).values()))
-    for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
-        _write_depths(out, fr, hand_depths(PosedParts(rb, posed), p.depth_cap_m * rb.scale))
-    return out
 
 
 def _write_depths(out: HandDepth, frames: Tensor, got: HandDepth) -> None:

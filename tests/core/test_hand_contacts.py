@@ -18,7 +18,8 @@ from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.contacts.correspondence import no_contacts
 from retarget_core.contacts.foot_contact import FootContacts
-from retarget_core.contacts.hand_reach import ReachBody, hand_reach, posed_for_reach, reach_body
+from retarget_core.contacts.hand_depth import HandDepth, hand_depths
+from retarget_core.contacts.hand_reach import PosedParts, ReachBody, hand_reach, posed_for_reach, reach_body
 from retarget_core.contacts.self_contact import SelfContacts
 from retarget_core.context import RefineContext
 from retarget_core.loading import load_character
@@ -221,7 +222,7 @@ def test_part_trees_posed_in_smaller_chunks_give_the_same_stage(skinny, monkeypa
 
 def test_measuring_both_on_one_posing_equals_measuring_each(skinny) -> None:  # type: ignore[no-untyped-def]
     """The stage poses each chunk once for its distances and its depths (``measure_both``): the same figures as
-    :func:`measure_hands` and :func:`measure_inside` posing their own frames, on every frame and on a subset."""
+    :func:`measure_hands` and as the depths of all the frames posed at once, on every frame and on a subset."""
     ch, mapping, rb = skinny
     source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
     side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
@@ -235,7 +236,9 @@ def test_measuring_both_on_one_posing_equals_measuring_each(skinny) -> None:  # 
     again, deeper = hand_contacts.measure_both(ctx, rb, target, src, p, some, state, depth, chunk=5)
     for frames, got, (s, d) in ((every, (state, depth), (None, None)), (some, (again, deeper), (state, depth))):
         hands = hand_contacts.measure_hands(ctx, rb, target, src, p, frames, s)
-        inside = hand_contacts.measure_inside(ctx, rb, target, frames, p, d)
+        inside = HandDepth.empty(target.num_frames) if d is None else HandDepth(*(t.clone() for t in vars(d).values()))
+        whole = hand_depths(PosedParts(rb, posed_for_reach(rb, ch, target, frames)), p.depth_cap_m * rb.scale)
+        inside.depth[frames], inside.hand_point[frames], inside.surface_point[frames] = vars(whole).values()
         for a, b in ((got[0], hands), (got[1], inside)):
             for x, y in zip(vars(a).values(), vars(b).values(), strict=True):
                 assert torch.equal(x.nan_to_num(-1.0), y.nan_to_num(-1.0))
