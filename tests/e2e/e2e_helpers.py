@@ -54,15 +54,15 @@ def changed_fraction(a: np.ndarray, b: np.ndarray, threshold: int = 30) -> float
     return float((np.abs(a - b) > threshold).mean())
 
 
-def renders(page: Any) -> dict[str, int]:
-    views = page.evaluate("window.__viewer.views()")
-    return {k: v.get("renders", 0) for k, v in views.items() if v.get("loaded")}
-
-
 def seek(page: Any, frame: int) -> None:
-    """Seek through the test hook and wait until every loaded view has drawn again."""
-    before = renders(page)
-    page.evaluate("(f) => window.__viewer.seek(f)", frame)
+    """Seek through the test hook and wait until every loaded view has drawn again. The render counts are read in
+    the same script as the seek: a draw already due (a camera still settling) then cannot pass for the new frame's."""
+    before = page.evaluate(
+        """(f) => { const counts = Object.fromEntries(Object.entries(window.__viewer.views())
+                      .filter(([, v]) => v.loaded).map(([k, v]) => [k, v.renders || 0]));
+                    window.__viewer.seek(f); return counts; }""",
+        frame,
+    )
     wait_drawn(page, before)
 
 
