@@ -33,7 +33,7 @@ from retarget_core.geometry.triangle_bvh import (
 )
 from retarget_core.metrics.acceptance_body import PARTS, AcceptanceBody, acceptance_body
 
-MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm": ("torso",)}
+MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm": ("torso",), "head": ("torso",)}
 """Tester part -> parts whose posed meshes its vertices are tested against (the rigid SDFs miss these)."""
 
 SKIN_DRAG_WEIGHT = 0.01  # torso vertices with more arm skin weight than this move with the arm (the bulge)
