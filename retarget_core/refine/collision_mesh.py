@@ -1,14 +1,16 @@
-"""Arm vertices inside the posed torso and head meshes, as the judge sees them (closed parts, winding numbers),
+"""Arm and head vertices inside the posed torso mesh, as the judge sees them (closed parts, winding numbers),
 and a differentiable depth for them: the collision stage's complement to the rigid part SDFs.
 
 Why: the part SDFs are rigid grids in each segment's rest frame. Near the armpit the torso's skin is skinned
 partly to the arm (weights of Spine1, Spine2, Shoulder and Arm mixed), so when an arm hangs at the side of a
 bulky body the posed torso surface bulges out with it and holds upper-arm vertices 1-3 cm deep, 7-14 cm from
 any part seam, while the rigid Spine grids see them outside (on bulky, heavy and tall bodies, most of the frames
-the judge counts deeper than 1 cm after the stage without this test). Here the posed closed parts of
-:mod:`retarget_core.metrics.acceptance_body` are tested directly (closest triangle and winding number through
-a tree refit per frame, :mod:`retarget_core.geometry.triangle_bvh`), and each (frame, arm vertex, triangle)
-found is given the plane distance to its posed triangle, which the optimiser can differentiate.
+the judge counts deeper than 1 cm after the stage without this test). The chin meets the chest the same way: the
+upper chest is skinned partly to the neck, and the judge counts any head vertex inside the torso (head %v). Here
+the posed closed parts of :mod:`retarget_core.metrics.acceptance_body` are tested directly (closest triangle and
+winding number through a tree refit per frame, :mod:`retarget_core.geometry.triangle_bvh`), and each (frame,
+tester vertex, triangle) found is given the plane distance to its posed triangle, which the optimiser can
+differentiate.
 
 Lengths in metres on the body's own scale unless the name says otherwise.
 """
@@ -36,8 +38,8 @@ from retarget_core.metrics.acceptance_body import PARTS, AcceptanceBody, accepta
 MESH_TARGETS: dict[str, tuple[str, ...]] = {"left_arm": ("torso",), "right_arm": ("torso",), "head": ("torso",)}
 """Tester part -> parts whose posed meshes its vertices are tested against (the rigid SDFs miss these)."""
 
-SKIN_DRAG_WEIGHT = 0.01  # torso vertices with more arm skin weight than this move with the arm (the bulge)
-TESTER_REACH_M = 0.20  # arm vertices within this (rest, at 1.80 m) of such torso vertices are tested
+SKIN_DRAG_WEIGHT = 0.01  # torso vertices with more of a tester's skin weight than this move with it (the bulge)
+TESTER_REACH_M = 0.20  # tester vertices within this (rest, at 1.80 m) of such torso vertices are tested
 CHUNK_BUDGET_BYTES = 160 * 2**20  # posed frames and part-tree boxes held at once: 32 frames on MakeHuman bodies
 
 
@@ -89,7 +91,7 @@ class MeshPairs:
 class MeshSetup:
     """Per body: the judge's parts (``body``) and, per tester part of :data:`MESH_TARGETS`, the tested vertices
     ``testers[part] (T,)`` (counted by the judge and within reach of the dragged skin), the dragged torso
-    vertices ``dragged[part] (D,)`` (skinned partly to that arm) and each target part's tree."""
+    vertices ``dragged[part] (D,)`` (skinned partly to that tester part) and each target part's tree."""
 
     body: AcceptanceBody
     testers: dict[str, np.ndarray]
@@ -118,8 +120,8 @@ def mesh_setup(character: Character, mapping: JointMapping) -> MeshSetup:
     testers_: dict[str, np.ndarray] = {}
     dragged: dict[str, np.ndarray] = {}
     for p in MESH_TARGETS:
-        arm_w = w[:, seg_cluster == CLUSTERS.index(p)].sum(1)
-        d = np.nonzero(torso & (arm_w > SKIN_DRAG_WEIGHT))[0]
+        own_w = w[:, seg_cluster == CLUSTERS.index(p)].sum(1)
+        d = np.nonzero(torso & (own_w > SKIN_DRAG_WEIGHT))[0]
         cand = np.nonzero((body.part_of_vertex == PARTS.index(p)) & ~body.seam)[0]
         if len(d) and len(cand):
             gap = np.min(np.linalg.norm(rest[cand, None] - rest[None, d[:: max(1, len(d) // 64)]], axis=-1), axis=1)

@@ -59,7 +59,7 @@ class CollisionParams:
     finish_slack_m: float = 0.01  # the finishing pass's extra vertices: segments within 1 cm on the input
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0  # sentinel depth in the part SDFs
-    w_mesh: float = 5.0  # an arm vertex inside the posed torso or head mesh (the rigid SDFs miss the armpit)
+    w_mesh: float = 5.0  # an arm or head vertex inside the posed torso mesh (the rigid SDFs miss armpit and chin)
     mesh_near_m: float = 0.01  # arm vertices this close outside the posed torso are kept out too
     judged_pairs_only: bool = True  # resolve only the pairs the judge tests (no torso vertices)
     use_mesh: bool = True  # test arms against the posed torso mesh

@@ -115,3 +115,37 @@ def test_the_mesh_test_finds_what_libigl_finds_on_a_posed_body() -> None:
                 assert abs(found[(f, int(v))] - (dist if ins else -dist)) < 1e-6
             elif dist < reach:
                 assert cap or not (ins or dist < near), (f, v)
+
+
+def test_the_mesh_test_finds_a_chin_bowed_into_the_chest() -> None:
+    """The head's vertices are tested against the posed torso too (the judge's head %v): with the neck and head
+    bowed until the judge counts the chin inside the chest, head vertices are among the pairs, inside."""
+    from pathlib import Path
+
+    import numpy as np
+    import roma
+
+    from retarget_core import rotations as rot
+    from retarget_core.loading import load_character
+    from retarget_core.metrics.acceptance import measure_acceptance
+    from retarget_core.metrics.acceptance_body import PARTS
+    from retarget_core.motion import Motion
+    from retarget_core.refine.collision_mesh import mesh_pairs_of_motion, mesh_setup
+
+    loaded = load_character(Path(__file__).parents[2] / "retarget_core/data/samples/characters/mh_male_bulky.glb")
+    ch, mapping = loaded.character, loaded.mapping
+    setup = mesh_setup(ch, mapping)
+    head = np.nonzero(setup.body.part_of_vertex == PARTS.index("head"))[0]
+    assert len(setup.testers["head"]) and np.isin(setup.testers["head"], head).all()
+    sk = ch.skeleton
+    g_rest, _ = sk.rest_global()
+    r = sk.rest_rotations.repeat(2, 1, 1)
+    for j in (mapping.joints["Neck"], mapping.joints["Head"]):  # each bows 0.5 rad forward about the world x axis
+        bow = roma.rotvec_to_unitquat(torch.tensor([0.5, 0.0, 0.0], dtype=g_rest.dtype))
+        r[1, j] = rot.mul(sk.rest_rotations[j], rot.mul(roma.quat_conjugation(g_rest[j]), rot.mul(bow, g_rest[j])))
+    t = sk.rest_translations.repeat(2, 1, 1)
+    judged = measure_acceptance(ch, mapping, Motion(sk, 30.0, r, t, "bow"))
+    assert judged.head_count[0] == 0 and judged.head_count[1] > 0  # the built case: upright, then the chin in
+    pairs = mesh_pairs_of_motion(ch, setup, r, t, torch.arange(2), 0.01)
+    chin = pairs.select(torch.from_numpy(np.isin(pairs.vertex.numpy(), head)) & (pairs.depth > 0))
+    assert chin.count > 0 and set(chin.frame.tolist()) == {1}
