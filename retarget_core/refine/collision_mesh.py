@@ -132,6 +132,11 @@ def mesh_setup(character: Character, mapping: JointMapping) -> MeshSetup:
     return MeshSetup(body, testers_, dragged, trees)
 
 
+def part_mask(setup: MeshSetup, part: str) -> Tensor:
+    """``(V,)`` bool: the body vertices the judge counts in ``part`` (one of :data:`PARTS`)."""
+    return torch.from_numpy(setup.body.part_of_vertex == PARTS.index(part))
+
+
 def find_mesh_pairs(setup: MeshSetup, posed: np.ndarray, near: float, reach: float) -> MeshPairs:
     """Pairs of posed frames ``posed (n, V, 3)``: tester vertices within ``reach`` of the dragged skin's posed
     box that are inside a target part, or outside within ``near`` of it; closest points on a cap fan are left
@@ -277,4 +282,5 @@ __all__ = [
     "plane_distance",
     "mesh_pairs_of_motion",
     "mesh_signed_distance",
+    "part_mask",
 ]

@@ -44,7 +44,7 @@ from retarget_core.refine.collision_check import (
     contact_instances,
     stage_figures,
 )
-from retarget_core.refine.collision_mesh import MeshPairs, MeshSetup, mesh_pairs_of_motion, mesh_setup
+from retarget_core.refine.collision_mesh import MeshPairs, MeshSetup, mesh_pairs_of_motion, mesh_setup, part_mask
 from retarget_core.refine.collision_params import (
     END_EFFECTOR_PULL,
     END_EFFECTOR_WEIGHTS,
@@ -100,6 +100,7 @@ class Solve:
     repairs: int = 0
     guard: NeverWorse | None = None
     mesh_after: MeshPairs | None = None  # the pairs of the last never-worse measurement
+    head_before: Tensor | None = None  # (F,) deepest head vertex inside the posed torso on the input (0: none)
 
     @property
     def scale(self) -> float:
@@ -112,6 +113,11 @@ class Solve:
     @property
     def near(self) -> float:
         return self.params.mesh_near_m / self.scale
+
+    @property
+    def head(self) -> Tensor | None:
+        """``(V,)`` bool: the vertices the judge counts in the head (None without the posed-mesh test)."""
+        return None if self.body is None else part_mask(self.body, "head")
 
     @property
     def joints(self) -> list[int]:
@@ -130,6 +136,10 @@ class Solve:
         check = check_frames(self.ctx.target, self.ctx.sdf, rotations, self.trans, frames, self.contacts, self.tol,
                              allowed=self.allowed)  # fmt: skip
         self.mesh_after = with_mesh(self.ctx.target, self.body, check, rotations, self.trans, self.near)
+        mask = self.head
+        if self.mesh_after is not None and self.head_before is not None and mask is not None:  # a sunk chin is worse
+            head = head_depth(self.mesh_after, mask, self.motion.num_frames)[frames]
+            check.flagged = (head - self.head_before[frames]) * self.scale > self.params.worse_head_depth_m
         return check
 
 
@@ -153,6 +163,7 @@ def set_up(ctx: RefineContext, motion: Motion, params: CollisionParams) -> Solve
     active = active_frames(before, contacts, f_n, params, scale, motion.fps, ground.low if ground is not None else None)
     names = [n for n in params.joint_stiffness if n in ctx.target_mapping.joints]
     s = Solve(ctx, motion, params, rot_in, trans, contacts, held, allowed, before, body, mesh, ground, active, names)
+    s.head_before = head_depth(mesh, s.head, f_n) if s.head is not None and mesh is not None else None
     s.timings["check_before"] = time.process_time() - cpu0
     s.report["method"] = "optimisation: B-spline rotation residuals on sentinel SDF energy"
     return s
@@ -273,7 +284,7 @@ def repair_round(s: Solve, after: FrameCheck, worse: Tensor) -> Tensor | None:
     assert s.knots is not None and s.exempt is not None
     frames = after.frames
     extra = deepened_points(s.before, after, worse, s.points, s.tol)
-    mesh_new = mesh_inside(s.mesh_after, frames[worse], s.tol)
+    mesh_new = mesh_inside(s.mesh_after, frames[worse], s.tol, s.head)
     if len(extra) == 0 and (mesh_new is None or mesh_new.count == 0):
         return None
     t, p, resid = time.process_time(), s.params, s.residual()
@@ -314,11 +325,19 @@ def deepened_points(before: FrameCheck, after: FrameCheck, worse: Tensor, points
     return grown[~torch.isin(grown, points)]
 
 
-def mesh_inside(mesh: MeshPairs | None, frames: Tensor, tol: float) -> MeshPairs | None:
-    """The pairs of ``mesh`` (clip frames) deeper than ``tol`` on clip ``frames``."""
+def mesh_inside(mesh: MeshPairs | None, frames: Tensor, tol: float, any_depth: Tensor | None = None) -> MeshPairs | None:
+    """The pairs of ``mesh`` (clip frames) deeper than ``tol`` on clip ``frames``; those of the vertices
+    ``any_depth (V,)`` (bool) inside at any depth."""
     if mesh is None:
         return None
-    return mesh.select(torch.isin(mesh.frame, frames) & (mesh.depth > tol))
+    limit = torch.full_like(mesh.depth, tol) if any_depth is None else torch.where(any_depth[mesh.vertex], 0.0, tol)
+    return mesh.select(torch.isin(mesh.frame, frames) & (mesh.depth > limit))
+
+
+def head_depth(mesh: MeshPairs, head: Tensor, frames: int) -> Tensor:
+    """``(frames,)`` the deepest of the vertices ``head (V,)`` (bool) inside the posed torso per clip frame of
+    ``mesh`` (0 where none)."""
+    return mesh.select(head[mesh.vertex]).max_depth(frames)
 
 
 def with_mesh(ch: Any, body: MeshSetup | None, check: FrameCheck, rotations: Tensor, translations: Tensor,

@@ -8,7 +8,7 @@ import torch
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.collision_mesh import MeshPairs
-from retarget_core.refine.collisions import deepened_points, mesh_inside
+from retarget_core.refine.collisions import deepened_points, head_depth, mesh_inside
 
 
 def _check(frames: list[int], depth: torch.Tensor) -> FrameCheck:
@@ -47,3 +47,15 @@ def test_mesh_inside_keeps_the_deep_pairs_of_the_given_frames() -> None:
     kept = mesh_inside(mesh, torch.tensor([3, 5]), tol=0.003)
     assert kept is not None and kept.vertex.tolist() == [10, 12]
     assert mesh_inside(None, torch.tensor([3]), 0.003) is None
+    head = torch.zeros(14, dtype=torch.bool)
+    head[11] = True  # a head vertex counts at any depth (the judge's head %v): 0.5 mm inside is kept too
+    mesh.depth[1] = 0.0005
+    kept = mesh_inside(mesh, torch.tensor([3, 5]), tol=0.003, any_depth=head)
+    assert kept is not None and kept.vertex.tolist() == [10, 11, 12]
+
+
+def test_head_depth_reads_the_deepest_head_vertex_per_frame() -> None:
+    mesh = MeshPairs(torch.tensor([0, 0, 2, 2]), torch.tensor([1, 2, 1, 3]), torch.zeros(4, 3, dtype=torch.long),
+                     torch.ones(4), torch.tensor([0.004, 0.01, -0.002, 0.001]))  # fmt: skip
+    head = torch.tensor([False, True, False, True])
+    assert torch.allclose(head_depth(mesh, head, 3), torch.tensor([0.004, 0.0, 0.001]))
