@@ -61,9 +61,9 @@ class CollisionParams:
     changed_rad: float = 1e-4  # a frame whose residual stays below this is left exactly as the input
     w_penetration: float = 1.0  # sentinel depth in the part SDFs
     w_mesh: float = 5.0  # an arm or head vertex inside the posed torso mesh (the rigid SDFs miss armpit and chin)
-    mesh_near_m: float = 0.01  # arm vertices this close outside the posed torso are kept out too
+    mesh_near_m: float = 0.01  # arm and head vertices this close outside the posed torso are kept out too
     judged_pairs_only: bool = True  # resolve only the pairs the judge tests (no torso vertices)
-    use_mesh: bool = True  # test arms against the posed torso mesh
+    use_mesh: bool = True  # test arms and head against the posed torso mesh
     w_ground: float = 20.0  # a hand or foot point below the floor
     ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell
     ground_tolerance_m: float = 0.002  # frames with a hand or foot point this far below the floor are optimised
