@@ -1,6 +1,6 @@
 """The collision stage on built cases: the cluster collision matrix reads a known depth, the resolver separates
-two pushed-in parts, brings a hand sunk into the belly to its surface, leaves a clean clip unchanged, and
-stays smooth on a real clip."""
+two pushed-in parts, brings a hand sunk into the belly to its surface, leaves a clean clip unchanged, stays
+smooth on a real clip, and reads a chin sunk into the chest as worse than an upright input."""
 
 from __future__ import annotations
 
@@ -409,3 +409,33 @@ def test_accessory_vertices_are_never_tested_nor_sentinels(bulky: Character) -> 
     assert float(gloved.depth.dense()[:, hand].abs().max()) == 0.0
     assert not bool(torch.isin(sentinel_vertices(sdf, bulky.vertices.float(), 0.03), hand).any())
     assert bool(torch.isin(sentinel_vertices(ctx.sdf, bulky.vertices.float(), 0.03), hand).any())
+
+
+def _bowed(ch: Character, angles: list[float]) -> Motion:
+    """Frames of the rest pose with the neck and head each bowed ``angle / 2`` forward about the world x axis."""
+    sk, mapping = ch.skeleton, mapping_by_name(ch.skeleton.names)
+    g_rest, _ = sk.rest_global()
+    r = sk.rest_rotations.repeat(len(angles), 1, 1)
+    for f, angle in enumerate(angles):
+        for j in (mapping.joints["Neck"], mapping.joints["Head"]):
+            bow = roma.rotvec_to_unitquat(torch.tensor([angle / 2, 0.0, 0.0], dtype=g_rest.dtype))
+            r[f, j] = rot.mul(sk.rest_rotations[j], rot.mul(roma.quat_conjugation(g_rest[j]), rot.mul(bow, g_rest[j])))
+    return Motion(sk, 30.0, r, sk.rest_translations.repeat(len(angles), 1, 1), "bowed")
+
+
+def test_a_chin_sunk_deeper_than_the_input_is_worse(bulky: Character) -> None:
+    """The never-worse measurement flags the frames whose chin went into the posed chest where the input's had not
+    (the judge counts any head vertex inside the torso), and none where the head stayed as it was."""
+    from retarget_core.refine.collision_params import CollisionParams
+    from retarget_core.refine.collisions import set_up
+
+    upright = _bowed(bulky, [0.0, 0.0, 0.0])
+    bowed = _bowed(bulky, [0.0, 1.0, 1.1])
+    judged = measure_acceptance(bulky, mapping_by_name(bulky.skeleton.names), bowed)
+    assert judged.head_count.tolist()[0] == 0 and min(judged.head_count[1:]) > 0  # the built case: chin in on 1, 2
+    s = set_up(_context(bulky, upright), upright, CollisionParams())
+    frames = torch.arange(3)
+    flagged = s.measure(bowed.rotations.float(), frames).flagged
+    assert flagged is not None and flagged.tolist() == [False, True, True]
+    same = s.measure(upright.rotations.float(), frames).flagged
+    assert same is not None and not bool(same.any())
