@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import roma
@@ -114,7 +115,7 @@ class Solve:
     def near(self) -> float:
         return self.params.mesh_near_m / self.scale
 
-    @property
+    @cached_property
     def head(self) -> Tensor | None:
         """``(V,)`` bool: the vertices the judge counts in the head (None without the posed-mesh test)."""
         return None if self.body is None else part_mask(self.body, "head")
