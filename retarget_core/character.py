@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from retarget_core import kinematics
+from retarget_core.geometry.skinning_kernel import sparse_skinning
 from retarget_core.skeleton import Skeleton
 
 
@@ -117,16 +118,25 @@ class Character:
 
     def pose_vertices(self, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
         """Posed vertices ``(..., V, 3)`` for world joint transforms ``(..., J, 4)`` and ``(..., J, 3)``."""
-        rest_rot, rest_pos = self.skeleton.rest_global()
-        mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
-        return kinematics.linear_blend_skinning(self.vertices, self.dense_weights(), mats)
+        return self._skin(None, global_rotations, global_positions)
 
     def pose_rows(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
         """The rows ``index (N,)`` of :meth:`pose_vertices`, ``(..., N, 3)``, computed the same way (bit-identical),
         without posing the other vertices."""
+        return self._skin(index, global_rotations, global_positions)
+
+    def _skin(self, index: Tensor | None, global_rotations: Tensor, global_positions: Tensor) -> Tensor:
+        """Posed rows ``index (N,)`` (None: all) ``(..., N, 3)``: over each vertex's own influences (compiled) when
+        no gradient is wanted on the CPU, else the dense differentiable form; either way each vertex's position
+        depends on its own row only, so any subset is bit-identical to the same rows of the whole."""
         rest_rot, rest_pos = self.skeleton.rest_global()
         mats = kinematics.skinning_matrices(rest_rot, rest_pos, global_rotations, global_positions)
-        return kinematics.linear_blend_skinning(self.vertices[index], self.dense_weights()[index], mats)
+        rows = slice(None) if index is None else index
+        if _differentiable(self.vertices, mats):
+            return kinematics.linear_blend_skinning(self.vertices[rows], self.dense_weights()[rows], mats)
+        flat = mats.reshape(-1, *mats.shape[-3:])
+        posed = sparse_skinning(self.vertices[rows], self.skin_joints[rows], self.skin_weights[rows], flat)
+        return posed.reshape(*mats.shape[:-3], *posed.shape[1:])
 
     def pose_vertex_subset(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
                            chunk: int | None = None) -> Tensor:  # fmt: skip
@@ -146,16 +156,9 @@ class Character:
     def _subset_chunks(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
                        chunk: int | None) -> Iterator[Tensor]:  # fmt: skip
         """:meth:`pose_vertex_subset`, one ``(f, N, 3)`` chunk of frames after another."""
-        weights = self.dense_weights()[index]  # (N, J)
-        used = torch.nonzero(weights.sum(0) > 0).flatten()
-        rest_rot, rest_pos = self.skeleton.rest_global()
-        w, rest = weights[:, used], self.vertices[index]
-        step = chunk or max(1, kinematics.SKINNING_CHUNK_BYTES // max(1, 48 * len(index)))
+        step = chunk or max(1, kinematics.SKINNING_CHUNK_BYTES // max(1, 12 * len(index)))
         for s in range(0, global_rotations.shape[0], step):
-            mats = kinematics.skinning_matrices(rest_rot[used], rest_pos[used], global_rotations[s : s + step, used],
-                                                global_positions[s : s + step, used])  # fmt: skip
-            blended = torch.einsum("nj,fjab->fnab", w.to(mats.dtype), mats)  # (f, N, 3, 4)
-            yield torch.einsum("fnab,nb->fna", blended[..., :3], rest.to(mats.dtype)) + blended[..., 3]
+            yield self._skin(index, global_rotations[s : s + step], global_positions[s : s + step])
 
     def vertex_normals(self) -> Tensor:
         """Area-weighted unit vertex normals ``(V, 3)`` of the rest mesh."""
@@ -165,3 +168,9 @@ class Character:
         for k in range(3):
             out.index_add_(0, self.faces[:, k], n)
         return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _differentiable(*tensors: Tensor) -> bool:
+    """Whether posing must keep gradients or stay off the CPU (then the dense torch form is used)."""
+    wants_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    return wants_grad or any(t.device.type != "cpu" for t in tensors)

@@ -159,6 +159,25 @@ def test_skinning_gives_the_same_frames_in_any_chunk() -> None:
         assert torch.equal(kinematics.linear_blend_skinning(ch.vertices, weights, mats, chunk), alone)
 
 
+def test_posing_over_each_vertex_influences_equals_the_dense_form() -> None:
+    """Posing without gradients (each vertex's own influences, compiled) gives the dense differentiable form's
+    positions, batch dimensions kept, and any rows of it bit for bit as the whole mesh's."""
+    ch = read_gltf(SAMPLES / "mh_female_skinny.glb").character
+    assert ch is not None
+    grot, gpos = _random_pose(ch, 6, seed=2)
+    rest_rot, rest_pos = ch.skeleton.rest_global()
+    mats = kinematics.skinning_matrices(rest_rot, rest_pos, grot, gpos)
+    dense = kinematics.linear_blend_skinning(ch.vertices, ch.dense_weights(), mats)
+    posed = ch.pose_vertices(grot, gpos)
+    assert posed.dtype == dense.dtype and posed.shape == dense.shape
+    assert (posed - dense).abs().max() < 1e-5 and (dense - ch.vertices).abs().max() > 0.05
+    batched = ch.pose_vertices(grot.view(2, 3, *grot.shape[1:]), gpos.view(2, 3, *gpos.shape[1:]))
+    assert torch.equal(batched.view_as(posed), posed)
+    index = torch.tensor([ch.num_vertices - 1, 0, 5, 5])
+    assert torch.equal(ch.pose_rows(index, grot, gpos), posed[:, index])
+    assert torch.equal(ch.pose_vertex_subset(index, grot, gpos, chunk=4), posed[:, index])
+
+
 def _joint_by_joint(parents: list[int], local_rotations: torch.Tensor, local_translations: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """The glTF recursion written out joint after joint (the reference the level-wise FK must equal)."""
