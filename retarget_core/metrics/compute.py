@@ -370,24 +370,31 @@ class ContactHandMeter:
         need = torch.zeros(len(frames), *self.geometry.measured.shape, dtype=torch.bool)
         need[row, self.hand[sel], self.part[sel]] = True  # the source contacts' pairs
         far = None
+        far_only = torch.zeros_like(need)
         if self.source is not None:
             far = torch.isinf(self.source.distance[frames]) & self.source.measured[None] & self.geometry.measured[None]
             self.frame_far[frames] = far.flatten(1).sum(1)
-            need |= far if candidates is None else far & candidates
-        dist = self._distances(verts, need)
+            far_only = (far if candidates is None else far & candidates) & ~need
+        dist = self._distances(verts, need, far_only)
         if far is not None:
             self.frame_false[frames] = (far & (dist < self.false_m)).flatten(1).sum(1)
         self.distance[sel] = dist[row, self.hand[sel], self.part[sel]].float()
 
-    def _distances(self, verts: Tensor, need: Tensor) -> Tensor:
-        """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` (inf elsewhere), part by part on
-        the frames that need it, each query holding that part's triangles only."""
+    def _distances(self, verts: Tensor, need: Tensor, far_only: Tensor) -> Tensor:
+        """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` up to the full reach and of the
+        pairs ``far_only`` up to the false-contact distance (all a false contact asks; nearer frames are culled
+        sooner), inf elsewhere: part by part on the frames that need it, each query holding that part's
+        triangles only."""
         dist = torch.full(need.shape, float("inf"), dtype=torch.float64)
-        for p in torch.nonzero(need.any(dim=(0, 1))).flatten().tolist():
-            rows = torch.nonzero(need[:, :, p].any(1)).flatten()
-            geom = self._part_geometry(p)
-            found = hand_part_distances(self.character, self.parts, verts[rows], geometry=geom)
-            dist[rows, :, p] = found.distance[:, :, p]
+        false_reach = HandDistanceParams(max_distance_m=FALSE_CONTACT_M)
+        for p in torch.nonzero((need | far_only).any(dim=(0, 1))).flatten().tolist():
+            full = need[:, :, p].any(1)
+            for rows, params in ((full, None), (far_only[:, :, p].any(1) & ~full, false_reach)):
+                index = torch.nonzero(rows).flatten()
+                if len(index):
+                    found = hand_part_distances(self.character, self.parts, verts[index], params,
+                                                geometry=self._part_geometry(p))  # fmt: skip
+                    dist[index, :, p] = found.distance[:, :, p]
         return dist
 
     def _part_geometry(self, p: int) -> HandPartGeometry:

@@ -595,3 +595,31 @@ def test_hand_geometry_is_built_once_per_body() -> None:
     assert cached_hand_geometry(ch, parts) is first
     fresh = cached_hand_geometry(ch, other)
     assert fresh is not first and torch.equal(fresh.faces, first.faces)
+
+
+def test_false_contacts_read_at_the_false_contact_reach_as_at_the_full_reach(shared_data: Path) -> None:
+    """The meter measures a pair far on the source only up to the false-contact distance: on a two-hand grip
+    whose source is taken as far everywhere, its per-frame false contacts equal those of the full-reach
+    distances, with pairs both nearer and farther than that distance present."""
+    from dataclasses import replace
+
+    from retarget_core.contacts.hand_distance import REFERENCE_HEIGHT_M, hand_part_distances
+    from retarget_core.jobs import JobInputs
+    from retarget_core.metrics.compute import FALSE_CONTACT_M, ContactHandMeter
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import prepare
+
+    inputs = JobInputs(shared_data / "motions" / "cmu" / "002_08.bvh", shared_data / "characters" / "mh_male_bulky.glb",
+                       options=RetargetOptions(fps=30.0, frame_end=190))  # fmt: skip
+    p = prepare(inputs, max_frames=48)
+    body, parts = p.target.character, p.assets.sdf.parts
+    posed = body.pose_vertices(*p.before.global_transforms())
+    full = hand_part_distances(body, parts, posed)
+    source = replace(full, distance=torch.full_like(full.distance, float("inf")))
+    meter = ContactHandMeter(body, parts, None, source, frames=len(posed))
+    meter.measure(posed, torch.arange(len(posed)))
+    false_m = FALSE_CONTACT_M * body.height / REFERENCE_HEIGHT_M
+    expected = ((full.distance < false_m) & full.measured[None]).flatten(1).sum(1)
+    assert int(expected.sum()) > 0, "the grip must bring a hand within the false-contact distance of a part"
+    assert bool(((full.distance >= false_m) & torch.isfinite(full.distance)).any()), "and keep pairs beyond it"
+    assert torch.equal(meter.frame_false, expected)
