@@ -218,22 +218,24 @@ def refit_boxes(vertices: np.ndarray, faces: np.ndarray, leaf_faces: np.ndarray,
     a leaf's from its triangles' corners (an empty leaf: +inf and -inf), a parent's from its children's."""
     first_leaf = (1 << depth) - 1
     for s in range(vertices.shape[0]):
-        for leaf in range(leaf_faces.shape[0]):
-            node = first_leaf + leaf
-            lo[s, node], hi[s, node] = np.inf, -np.inf
+        for leaf in range(leaf_faces.shape[0]):  # the corners' bounds kept in locals: the loop does not store them
+            lx, ly, lz, hx, hy, hz = np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf
             for k in range(leaf_faces.shape[1]):
                 f = leaf_faces[leaf, k]
                 if f < 0:
                     break
                 for c in range(3):
-                    v = vertices[s, faces[f, c]]
-                    for x in range(3):
-                        lo[s, node, x] = min(lo[s, node, x], v[x])
-                        hi[s, node, x] = max(hi[s, node, x], v[x])
+                    i = faces[f, c]
+                    x, y, z = vertices[s, i, 0], vertices[s, i, 1], vertices[s, i, 2]
+                    lx, ly, lz, hx, hy, hz = min(lx, x), min(ly, y), min(lz, z), max(hx, x), max(hy, y), max(hz, z)
+            node = first_leaf + leaf
+            lo[s, node, 0], lo[s, node, 1], lo[s, node, 2] = lx, ly, lz
+            hi[s, node, 0], hi[s, node, 1], hi[s, node, 2] = hx, hy, hz
         for node in range(first_leaf - 1, -1, -1):
+            a, b = 2 * node + 1, 2 * node + 2
             for x in range(3):
-                lo[s, node, x] = min(lo[s, 2 * node + 1, x], lo[s, 2 * node + 2, x])
-                hi[s, node, x] = max(hi[s, 2 * node + 1, x], hi[s, 2 * node + 2, x])
+                lo[s, node, x] = min(lo[s, a, x], lo[s, b, x])
+                hi[s, node, x] = max(hi[s, a, x], hi[s, b, x])
 
 
 def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MIN_BLOCK) -> None:
