@@ -140,9 +140,9 @@ class Character:
 
     def pose_vertex_subset(self, index: Tensor, global_rotations: Tensor, global_positions: Tensor,
                            chunk: int | None = None) -> Tensor:  # fmt: skip
-        """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` only (LBS on the joints that skin them),
+        """Posed positions ``(F, N, 3)`` of the vertices ``index (N,)`` only, the same rows as :meth:`pose_vertices`,
         from world joint transforms ``(F, J, 4)`` and ``(F, J, 3)``, ``chunk`` frames at a time (default: as many
-        as keep a chunk's blended matrices within :data:`kinematics.SKINNING_CHUNK_BYTES`)."""
+        as keep a chunk's posed float32 positions within :data:`kinematics.SKINNING_CHUNK_BYTES`)."""
         out = list(self._subset_chunks(index, global_rotations, global_positions, chunk))
         return torch.cat(out) if out else self.vertices.new_zeros(0, len(index), 3)
 
