@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.character import Character
+from retarget_core.geometry.skin_rows import skin_rows
 from retarget_core.kinematics import SKINNING_CHUNK_BYTES
 
 
@@ -106,10 +107,13 @@ class RowPlan:
 
 def pose_rows(plan: RowPlan, mats: Tensor) -> Tensor:
     """Posed positions ``(N, 3)`` of the rows of ``plan`` from skinning transforms ``mats (F, J, 3, 4)``: only the
-    rows an energy reads are posed, and the gradient flows back through one gather."""
+    rows an energy reads are posed, each from its own influences (compiled on the CPU, :func:`skin_rows`)."""
     n, k = plan.weight.shape
+    if mats.device.type == "cpu":
+        return skin_rows(plan.mat_rows.reshape(n, k), plan.weight, plan.rest, mats.reshape(-1, 3, 4))
     m = mats.reshape(-1, 12).index_select(0, plan.mat_rows).reshape(n, k, 12)
     blended = torch.bmm(plan.weight[:, None, :], m).reshape(n, 3, 4)
     return torch.bmm(blended[..., :3], plan.rest[..., None])[..., 0] + blended[..., 3]
+
 
 __all__ = ["PointPoser", "RowPlan", "pose_rows", "rotvec_to_matrix"]
