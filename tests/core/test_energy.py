@@ -289,3 +289,32 @@ def test_part_sdf_of_a_real_body_is_consistent(shared_data: Path) -> None:
         own = torch.unique(parts.faces[parts.face_part == s])
         d = _sample_grid(sdf, s, ch.vertices[own])
         assert float(d.abs().median()) < 0.002, name
+
+
+def test_compiled_grid_lookup_matches_the_tensor_form_and_its_gradient() -> None:
+    """The compiled lookup (:mod:`retarget_core.energy.sdf_kernel`) gives the tensor form's distances and
+    gradients on points inside, near and outside a segment's grid (the blend band included)."""
+    import torch.nn.functional as nnf
+
+    from retarget_core.energy.sdf_kernel import sample_grid
+
+    g = torch.Generator().manual_seed(3)
+    grid = torch.randn(2, 6, 7, 8, generator=g, dtype=torch.float64) * 0.02  # values around the blend width
+    lo, voxel, blend = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64), 0.01, 0.02
+    hi = lo + voxel * torch.tensor([7.0, 6.0, 5.0], dtype=torch.float64)  # x, y, z: Nx - 1, Ny - 1, Nz - 1 voxels
+    x = (lo - 0.02 + torch.rand(400, 3, generator=g, dtype=torch.float64) * (hi - lo + 0.04)).requires_grad_(True)
+
+    def tensor_form(p: torch.Tensor) -> torch.Tensor:
+        inside = torch.minimum(torch.maximum(p, lo), hi)
+        norm = 2.0 * (inside - lo) / (hi - lo) - 1.0
+        seg, char = nnf.grid_sample(grid[None], norm.view(1, 1, 1, -1, 3), align_corners=True).view(2, -1)
+        q = (seg / blend).clamp(0.0, 1.0)
+        return q * seg + (1.0 - q) * char + (p - inside).norm(dim=-1)
+
+    want = tensor_form(x)
+    got = sample_grid(grid, lo, voxel, blend, x)
+    (g_want,) = torch.autograd.grad(want.sum(), x)
+    (g_got,) = torch.autograd.grad(got.sum(), x)
+    assert torch.allclose(got, want, atol=1e-12)
+    assert torch.allclose(g_got, g_want, atol=1e-9)
+    assert ((x < lo) | (x > hi)).any() and (g_want.abs() > 0.1).any()  # points outside; gradients not trivial
