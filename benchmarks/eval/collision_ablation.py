@@ -50,6 +50,8 @@ VARIANTS: dict[str, collisions.CollisionParams] = {
     "planted_foot_ee_weight=0.5": replace(D, planted_foot_ee_weight=0.5),
     "ee_source_pull=0": replace(D, ee_source_pull={k: 0.0 for k in D.ee_source_pull}),
     "w_smooth=0": replace(D, w_smooth=0.0),
+    "iterations=30": replace(D, iterations=30),  # fewer sentinel steps: what the stage's time buys
+    "iterations=24": replace(D, iterations=24),
 }
 """Each setting off, or at the neutral value (the other end effectors' weight, no pull)."""
 

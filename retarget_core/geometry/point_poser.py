@@ -12,7 +12,7 @@ from torch import Tensor
 
 from retarget_core.character import Character
 from retarget_core.geometry.skin_rows import skin_rows
-from retarget_core.kinematics import SKINNING_CHUNK_BYTES
+from retarget_core.kinematics import SKINNING_CHUNK_BYTES, dense_weights
 
 
 def rotvec_to_matrix(r: Tensor) -> Tensor:
@@ -41,10 +41,11 @@ class PointPoser:
         self.rest_pos = rest_pos.float()
         self.points = points
         self.rest = character.vertices.float().index_select(0, points)  # (P, 3)
-        self.weights = character.dense_weights().float().index_select(0, points)  # (P, J)
         self.seg_joints = torch.tensor(seg_joints, dtype=torch.long)
         self.skin_joints = character.skin_joints.index_select(0, points)  # (P, K) sparse influences
-        self.skin_weights = character.skin_weights.float().index_select(0, points)  # (P, K)
+        weights = character.skin_weights.index_select(0, points)
+        self.skin_weights = weights.float()  # (P, K)
+        self.weights = dense_weights(self.skin_joints, weights, sk.num_joints).float()  # (P, J): the points' rows only
 
     def __call__(self, local_rot: Tensor, local_trans: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """From local rotation matrices ``(F, J, 3, 3)`` and translations ``(F, J, 3)``: posed points
