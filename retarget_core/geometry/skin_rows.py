@@ -15,20 +15,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from retarget_core.geometry.skinning_kernel import blend_row
+
 
 @numba.njit(cache=True, nogil=True)
 def _pose(mat_rows: np.ndarray, weight: np.ndarray, rest: np.ndarray, mats: np.ndarray, out: np.ndarray) -> None:
-    """``out (N, 3)`` = sum_k weight[n, k] * mats[mat_rows[n, k]] @ (rest[n], 1); ``mats (T, 3, 4)``."""
+    """``out (N, 3)``: :func:`blend_row` of each row ``n`` (``mat_rows, weight (N, K)``, ``rest (N, 3)``) from
+    ``mats (T, 3, 4)``."""
     for n in range(rest.shape[0]):
-        x, y, z = rest[n, 0], rest[n, 1], rest[n, 2]
-        for r in range(3):
-            acc = 0.0
-            for k in range(weight.shape[1]):
-                w = weight[n, k]
-                if w != 0.0:
-                    m = mats[mat_rows[n, k], r]
-                    acc += w * (m[0] * x + m[1] * y + m[2] * z + m[3])
-            out[n, r] = acc
+        blend_row(mats, mat_rows[n], weight[n], rest[n], out[n])
 
 
 @numba.njit(cache=True, nogil=True)

@@ -18,22 +18,28 @@ from retarget_core.geometry.bvh_kernels import run_in_blocks
 MIN_VERTEX_FRAMES = 100_000  # posed vertices per thread at least: fewer are not worth a thread's start
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def blend_row(mats: np.ndarray, joints: np.ndarray, weights: np.ndarray, rest: np.ndarray, out: np.ndarray) -> None:
+    """One vertex: ``out (3,)`` = sum_k weights[k] * mats[joints[k]] @ (rest, 1), zero weights skipped;
+    ``mats (T, 3, 4)``, ``joints, weights (K,)``, ``rest (3,)``."""
+    x, y, z = rest[0], rest[1], rest[2]
+    for r in range(3):
+        acc = 0.0
+        for k in range(joints.shape[0]):
+            w = weights[k]
+            if w != 0.0:
+                m = mats[joints[k], r]
+                acc += w * (m[0] * x + m[1] * y + m[2] * z + m[3])
+        out[r] = acc
+
+
 @numba.njit(cache=True, nogil=True)
 def _skin(rest: np.ndarray, joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray, out: np.ndarray) -> None:
-    """``out (F, V, 3)`` = sum_k weights[v, k] * matrices[f, joints[v, k]] @ (rest[v], 1); ``rest (V, 3)``,
-    ``joints, weights (V, K)``, ``matrices (F, J, 3, 4)``."""
+    """``out (F, V, 3)``: :func:`blend_row` of every vertex ``rest (V, 3)``, ``joints, weights (V, K)`` on every
+    frame of ``matrices (F, J, 3, 4)``."""
     for f in range(matrices.shape[0]):
         for v in range(rest.shape[0]):
-            x, y, z = rest[v, 0], rest[v, 1], rest[v, 2]
-            for r in range(3):
-                acc = 0.0
-                for k in range(joints.shape[1]):
-                    w = weights[v, k]
-                    if w != 0.0:
-                        j = joints[v, k]
-                        acc += w * (matrices[f, j, r, 0] * x + matrices[f, j, r, 1] * y + matrices[f, j, r, 2] * z
-                                    + matrices[f, j, r, 3])  # fmt: skip
-                out[f, v, r] = acc
+            blend_row(matrices[f], joints[v], weights[v], rest[v], out[f, v])
 
 
 def sparse_skinning(rest: Tensor, joints: Tensor, weights: Tensor, matrices: Tensor) -> Tensor:
