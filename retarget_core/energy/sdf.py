@@ -272,8 +272,8 @@ def _sample_grid(sdf: PartSDF, seg: int, x: Tensor, channel: int | None = None) 
     or 1: the segment or character channel alone)."""
     grid = sdf.grids[seg]
     assert grid is not None
-    if channel is None and x.device.type == "cpu" and grid.device.type == "cpu":
-        return sample_grid(grid, sdf.origin[seg], float(sdf.voxel[seg]), sdf.blend, x)  # compiled, same figures
+    if channel is None and x.device.type == "cpu" and grid.device.type == "cpu" and min(grid.shape[1:]) >= 2:
+        return sample_grid(grid, sdf.origin[seg], float(sdf.voxel[seg]), sdf.blend, x)  # compiled; float64 inside
     size = sdf.size[seg].to(x.dtype)
     extent = (size - 1) * sdf.voxel[seg]
     lo = sdf.origin[seg].to(x.dtype)

@@ -1,8 +1,9 @@
 """One segment grid's blended signed distance at rest-frame points, with its gradient, compiled (numba) on the CPU.
 
-The same value as :func:`retarget_core.energy.sdf._sample_grid` (trilinear in the two channels, paper 2's blend,
-``+ |x - clamp(x)|`` outside the box) in one pass per point instead of a dozen tensor operations, and its
-gradient in the point from the same pass (the tensor form's backward was most of the collision solver's step).
+The value of :func:`retarget_core.energy.sdf._sample_grid`'s tensor form (trilinear in the two channels, paper 2's
+blend, ``+ |x - clamp(x)|`` outside the box; computed in float64, so equal to float32 rounding) in one pass per
+point instead of a dozen tensor operations, and its gradient in the point from the same pass (the tensor form's
+backward was most of the collision solver's step). Grids need at least two voxels along each axis.
 """
 
 from __future__ import annotations
