@@ -85,7 +85,7 @@ def main() -> None:
         pairs = part_pairs(ch, tgt.mapping, posed)
         v = pairs[0][3] if pairs else -1
         fs = min(round(f * ratio), f_n - 1)
-        stage_depth = float(chk.depth[fs, v]) * scale if v >= 0 else 0.0
+        stage_depth = float(chk.depth.value_at(torch.tensor([fs]), torch.tensor([v]))[0]) * scale if v >= 0 else 0.0
         rows.append({
             "frame": int(f), "before_cm": round(float(m_before.pen_max[f]) * 100, 2),
             "after_cm": round(float(m_after.pen_max[f]) * 100, 2),

@@ -46,7 +46,8 @@ class CollisionParams:
     worse_volume_fraction: float = 0.02  # never-worse: a frame is worse when its volume grows by more than 2 % ...
     worse_volume_m3: float = 2e-8  # ... and by more than this (a few mm^3 is noise)
     worse_depth_m: float = 0.002  # ... or its deepest vertex goes 2 mm deeper
-    worse_head_depth_m: float = 0.0005  # ... or a head vertex goes this much deeper into the chest (the judge counts any)
+    worse_head_depth_m: float = 0.0005  # ... or a head vertex goes this much deeper into the chest, or more of them
+    # are inside at all (the judge's head %v counts any depth)
     active_margin: int = 6  # frames optimised around each marked frame
     fallback_ramp: int = 8  # frames over which a worse span blends back to the input
     fallback_rounds: int = 4  # rounds of the never-worse fallback

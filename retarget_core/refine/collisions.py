@@ -102,6 +102,7 @@ class Solve:
     guard: NeverWorse | None = None
     mesh_after: MeshPairs | None = None  # the pairs of the last never-worse measurement
     head_before: Tensor | None = None  # (F,) deepest head vertex inside the posed torso on the input (0: none)
+    head_count_before: Tensor | None = None  # (F,) head vertices inside the posed torso on the input
 
     @property
     def scale(self) -> float:
@@ -139,8 +140,11 @@ class Solve:
         self.mesh_after = with_mesh(self.ctx.target, self.body, check, rotations, self.trans, self.near)
         mask = self.head
         if self.mesh_after is not None and self.head_before is not None and mask is not None:  # a sunk chin is worse
-            head = head_depth(self.mesh_after, mask, self.motion.num_frames)[frames]
-            check.flagged = (head - self.head_before[frames]) * self.scale > self.params.worse_head_depth_m
+            f_n = self.motion.num_frames
+            deeper = (head_depth(self.mesh_after, mask, f_n)[frames] - self.head_before[frames]) * self.scale
+            assert self.head_count_before is not None
+            more = head_count(self.mesh_after, mask, f_n)[frames] > self.head_count_before[frames]
+            check.flagged = (deeper > self.params.worse_head_depth_m) | more
         return check
 
 
@@ -164,7 +168,8 @@ def set_up(ctx: RefineContext, motion: Motion, params: CollisionParams) -> Solve
     active = active_frames(before, contacts, f_n, params, scale, motion.fps, ground.low if ground is not None else None)
     names = [n for n in params.joint_stiffness if n in ctx.target_mapping.joints]
     s = Solve(ctx, motion, params, rot_in, trans, contacts, held, allowed, before, body, mesh, ground, active, names)
-    s.head_before = head_depth(mesh, s.head, f_n) if s.head is not None and mesh is not None else None
+    if s.head is not None and mesh is not None:
+        s.head_before, s.head_count_before = head_depth(mesh, s.head, f_n), head_count(mesh, s.head, f_n)
     s.timings["check_before"] = time.process_time() - cpu0
     s.report["method"] = "optimisation: B-spline rotation residuals on sentinel SDF energy"
     return s
@@ -339,6 +344,13 @@ def head_depth(mesh: MeshPairs, head: Tensor, frames: int) -> Tensor:
     """``(frames,)`` the deepest of the vertices ``head (V,)`` (bool) inside the posed torso per clip frame of
     ``mesh`` (0 where none)."""
     return mesh.select(head[mesh.vertex]).max_depth(frames)
+
+
+def head_count(mesh: MeshPairs, head: Tensor, frames: int) -> Tensor:
+    """``(frames,)`` how many of the vertices ``head (V,)`` (bool) lie inside the posed torso (at any depth: the
+    judge's head %v counts them) per clip frame of ``mesh``."""
+    inside = head[mesh.vertex] & (mesh.depth > 0)
+    return torch.zeros(frames, dtype=torch.long).index_add_(0, mesh.frame[inside], torch.ones_like(mesh.frame[inside]))
 
 
 def with_mesh(ch: Any, body: MeshSetup | None, check: FrameCheck, rotations: Tensor, translations: Tensor,

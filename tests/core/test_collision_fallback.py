@@ -8,7 +8,7 @@ import torch
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.collision_mesh import MeshPairs
-from retarget_core.refine.collisions import deepened_points, head_depth, mesh_inside
+from retarget_core.refine.collisions import deepened_points, head_count, head_depth, mesh_inside
 
 
 def _check(frames: list[int], depth: torch.Tensor) -> FrameCheck:
@@ -59,3 +59,11 @@ def test_head_depth_reads_the_deepest_head_vertex_per_frame() -> None:
                      torch.ones(4), torch.tensor([0.004, 0.01, -0.002, 0.001]))  # fmt: skip
     head = torch.tensor([False, True, False, True])
     assert torch.allclose(head_depth(mesh, head, 3), torch.tensor([0.004, 0.0, 0.001]))
+
+
+def test_head_count_reads_the_head_vertices_inside_at_any_depth_per_frame() -> None:
+    mesh = MeshPairs(torch.tensor([0, 0, 0, 2, 2]), torch.tensor([1, 2, 3, 1, 3]), torch.zeros(5, 3, dtype=torch.long),
+                     torch.ones(5), torch.tensor([0.004, 0.01, 1e-6, -0.002, 0.001]))  # fmt: skip
+    head = torch.tensor([False, True, False, True])
+    # frame 0: vertex 1 (4 mm) and vertex 3 (a micrometre: the judge counts it); frame 2: vertex 3 only
+    assert head_count(mesh, head, 3).tolist() == [2, 0, 1]

@@ -439,3 +439,7 @@ def test_a_chin_sunk_deeper_than_the_input_is_worse(bulky: Character) -> None:
     assert flagged is not None and flagged.tolist() == [False, True, True]
     same = s.measure(upright.rotations.float(), frames).flagged
     assert same is not None and not bool(same.any())
+    # a chin in by less than the depth allowance is still worse: more head vertices are inside at all
+    lenient = set_up(_context(bulky, upright), upright, CollisionParams(worse_head_depth_m=1.0))
+    flagged = lenient.measure(bowed.rotations.float(), frames).flagged
+    assert flagged is not None and flagged.tolist() == [False, True, True]
