@@ -1,6 +1,6 @@
 """What each refinement stage does to the judge's figures: one clip x body through the default chain, the
-acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them) printed after the copy and after every
-stage that ran, so a regression can be pinned on the stage that made it.
+acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them), and each end effector's error, printed after
+the copy and after every stage that ran, so a regression can be pinned on the stage that made it.
 
     PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/chain_diag.py \\
         ../shared/data/motions/cmu/002_06.bvh ~/.cache/retarget/heldout/heldout_tall-cc6a29d268ed.glb
@@ -17,9 +17,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from retarget_core.metrics.acceptance import figures_from_measures, measure_acceptance
+from retarget_core.canonical import CANONICAL_JOINTS
+from retarget_core.metrics.acceptance import END_EFFECTORS, ClipAcceptance, figures_from_measures, measure_acceptance
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions, refinement_stages
@@ -34,6 +36,21 @@ FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "fa
 def _rounded(value: float | None) -> float | None:
     """A figure to 4 decimals; None stays None (a clip without source contacts has no preservation)."""
     return None if value is None else round(float(value), 4)
+
+
+def effector_errors(result: ClipAcceptance, source: ClipAcceptance) -> dict[str, float]:
+    """Each end effector's share of the judge's end-effector error: its mean error (cm at 1.80 m) relative to
+    the hips (the judge's figure is the mean of these over the effectors)."""
+    f_n = min(result.num_frames, source.num_frames)
+    hips = CANONICAL_JOINTS.index("Hips")
+    out = {}
+    for name in END_EFFECTORS:
+        c = CANONICAL_JOINTS.index(name)
+        rel_r = result.joints[:f_n, c] - result.joints[:f_n, hips]
+        rel_s = source.joints[:f_n, c] - source.joints[:f_n, hips]
+        err = np.linalg.norm(rel_r - rel_s, axis=-1)
+        out[name] = round(100.0 * float(np.nanmean(err)), 2) if np.isfinite(err).any() else float("nan")
+    return out
 
 
 def main() -> None:
@@ -51,10 +68,14 @@ def main() -> None:
     rows: list[dict[str, object]] = []
 
     def report(stage: str, motion: Motion, seconds: float) -> None:
-        f = figures_from_measures(measure_acceptance(target.character, target.mapping, motion), source)
-        row = {"stage": stage, "seconds": round(seconds, 2), **{k: _rounded(getattr(f, k)) for k in FIGURES}}
+        measured = measure_acceptance(target.character, target.mapping, motion)
+        f = figures_from_measures(measured, source)
+        row: dict[str, object] = {"stage": stage, "seconds": round(seconds, 2),
+                                  **{k: _rounded(getattr(f, k)) for k in FIGURES},
+                                  "end_effector_cm": effector_errors(measured, source)}  # fmt: skip
         rows.append(row)
         print(f"{stage:>12}: " + "  ".join(f"{k} {row[k]}" for k in FIGURES) + f"  ({seconds:.1f} s)", flush=True)
+        print(f"{'':>12}  end effectors (cm): {row['end_effector_cm']}", flush=True)
 
     print(f"{a.clip.stem} x {Path(a.body).stem}, {prepared.before.num_frames} frames")
     report("copy", prepared.before, 0.0)

@@ -18,9 +18,8 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
-from benchmarks.common import BULKY_SAMPLE, add_clip_options, add_output, parser, results_dir, run_job_once, write_json  # noqa: E402
-
 import retarget_core.model.eso as eso  # noqa: E402
+from benchmarks.common import BULKY_SAMPLE, add_clip_options, add_output, parser, results_dir, run_job_once, write_json  # noqa: E402
 from retarget_core.model.windowed_decode import WINDOW_FRAMES, decode_windows, plan_windows  # noqa: E402
 
 AFTER = (0, 5, 10, 15, 20, 30, 40)
