@@ -73,12 +73,13 @@ def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> Frame
 
 
 def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved: Callable[[Tensor], Motion],
-                        changed: Tensor, flag: Flag | None = None,
-                        before: FrameCheck | None = None) -> Tensor:  # fmt: skip
+                        changed: Tensor, flag: Flag | None = None, before: FrameCheck | None = None,
+                        ramp: int | None = None) -> Tensor:  # fmt: skip
     """``(F,)`` the share of a stage's change kept per frame: the collision stage's never-worse check on the
     ``changed (n,)`` frames, with the arms' penetration as the judge reads it (:func:`arm_check`); ``moved(weight
     (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse; ``before``:
-    the input's :func:`arm_check` on ``changed`` where the stage has it already (measured otherwise)."""
+    the input's :func:`arm_check` on ``changed`` where the stage has it already (measured otherwise); ``ramp``:
+    frames at 30 fps over which a withdrawal blends (the collision stage's ``fallback_ramp`` when None)."""
     cp = CollisionParams()
     no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
 
@@ -91,7 +92,7 @@ def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved
         before = arm_check(ctx, rb, motion, changed)
     before = spread_check(before, motion.num_frames, ctx.target.num_vertices)
     settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
-                                at_fps(cp.fallback_ramp, motion.fps))  # fmt: skip
+                                at_fps(cp.fallback_ramp if ramp is None else ramp, motion.fps))  # fmt: skip
     check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
     return check.weight
 
