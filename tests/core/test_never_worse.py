@@ -117,3 +117,32 @@ def test_a_frame_the_stage_flags_falls_back_like_a_deeper_one() -> None:
     guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, SETTINGS)
     assert float(guard.weight[10]) == 0.0
     assert float(guard.weight[0]) == 1.0 and float(guard.weight[-1]) == 1.0
+
+
+def test_the_arm_stages_check_withdraws_over_the_ramp_it_is_given(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """:func:`judged_check.never_worse_weights` with a toy arm check (frame 20 worse with any of the change): the
+    change is withdrawn around it over ``ramp`` frames, so a shorter ramp keeps it whole nearer to the worse frame."""
+    from types import SimpleNamespace
+
+    from retarget_core.refine import judged_check
+
+    harm = torch.zeros(F)
+    harm[20] = 0.05
+
+    def fake_arm_check(ctx, rb, out, frames):  # type: ignore[no-untyped-def]
+        return _check(frames, 0.01 + harm[frames] * out.weight[frames])
+
+    monkeypatch.setattr(judged_check, "arm_check", fake_arm_check)
+    ctx = SimpleNamespace(target=SimpleNamespace(num_vertices=1))
+    rb = SimpleNamespace(scale=1.0)
+    motion = SimpleNamespace(num_frames=F, fps=30.0, weight=torch.zeros(F))  # the input: none of the change
+
+    def weights(ramp: int | None) -> Tensor:
+        return judged_check.never_worse_weights(ctx, rb, motion, lambda w: SimpleNamespace(weight=w),  # type: ignore[arg-type]
+                                                torch.arange(F), ramp=ramp)  # fmt: skip
+
+    short, default = weights(2), weights(None)  # None: the collision stage's 8 frames
+    assert float(short[20]) == 0.0 and float(default[20]) == 0.0
+    assert bool((short[:17] == 1.0).all()) and bool((short[24:] == 1.0).all())
+    assert float(default[16]) < 1.0 and float(default[24]) < 1.0
+    assert bool((short >= default).all())
