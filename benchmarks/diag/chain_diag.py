@@ -1,6 +1,7 @@
 """What each refinement stage does to the judge's figures: one clip x body through the default chain, the
-acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them), and each end effector's error, printed after
-the copy and after every stage that ran, so a regression can be pinned on the stage that made it.
+acceptance figures (ACCEPTANCE.md, as `retarget eval` measures them), each end effector's error and the stage's
+own report figures, printed after the copy and after every stage that ran, so a regression can be pinned on the
+stage that made it.
 
     PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/chain_diag.py \\
         ../shared/data/motions/cmu/002_06.bvh ~/.cache/retarget/heldout/heldout_tall-cc6a29d268ed.glb
@@ -85,8 +86,11 @@ def main() -> None:
             continue
         t = time.perf_counter()
         run = (lambda c, m: collisions.resolve(c, m, collision_params)) if info.name == "collisions" else stage
-        motion = run(ctx, motion).motion
+        outcome = run(ctx, motion)
+        motion = outcome.motion
         report(info.name, motion, time.perf_counter() - t)
+        scalars = {k: v for k, v in outcome.report.items() if isinstance(v, (int, float)) and k != "seconds"}
+        print(f"{'':>12}  stage report: {scalars}", flush=True)
     if a.json:
         write_json(a.json, {"clip": a.clip.stem, "body": a.body, "collisions": overrides, "rows": rows})
 
