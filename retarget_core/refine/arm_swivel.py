@@ -64,8 +64,6 @@ class SwivelParams:
     smooth_seconds: float = 0.1  # the turns' smoothing in time (a Gaussian's standard deviation)
     free_weight: float = 0.1  # a frame whose arm is not in the body: weakly toward no turn
     chunk: int = 64  # frames posed together, at most (fewer on a body whose part trees would not fit: ReachBody)
-    withdraw_ramp: int = 4  # frames (at 30 fps) over which a turn that made a frame worse is withdrawn: about the
-    # turns' own smoothing (smooth_seconds), as the hand contact stage's
 
 
 @dataclass
@@ -172,7 +170,7 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
     if len(changed):
         before = figures.check(changed, ctx.target.num_vertices, changed)
         share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed,
-                                    before=before, ramp=p.withdraw_ramp)  # fmt: skip
+                                    before=before)  # fmt: skip
     out = swivel_arms(motion, arms, turned * share[:, None])
     return StageOutcome(out, _report(first, turned, share, changed, t0))
 

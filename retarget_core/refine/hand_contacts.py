@@ -68,8 +68,6 @@ class HandContactParams:
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
     out_m: float = 0.005  # a hand deeper than this in a part is moved out to its surface [frames > 1 cm]
     depth_cap_m: float = 0.08  # ... read up to this depth (deeper: the hand is in another pose, not pressed in)
-    withdraw_ramp: int = 4  # frames (at 30 fps) over which a move that made a frame worse is withdrawn: about the
-    # moves' own smoothing (smooth_seconds), so a few worse frames do not take the contacts of their neighbours
 
 
 def contact_groups(side: int) -> list[list[int]]:
@@ -322,4 +320,4 @@ def never_worse_share(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: l
         after = near_clear_parts(src, measure_hands(ctx, rb, out, src, p, frames, state, clear_only=True), rb.scale, p)
         return (after[frames] & ~near_before[frames]).flatten(1).any(dim=1)
 
-    return never_worse_weights(ctx, rb, motion, moved, changed, new_near, ramp=p.withdraw_ramp)
+    return never_worse_weights(ctx, rb, motion, moved, changed, new_near)

@@ -21,6 +21,9 @@ from retarget_core.refine.collision_params import CollisionParams, at_fps
 from retarget_core.refine.never_worse import FallbackSettings, NeverWorse, run_never_worse
 
 ARM_DEPTH_CAP_M = 0.10  # arm vertices deeper than this in a part count at this depth (at 1.80 m)
+# Frames (at 30 fps) over which a change that made a frame worse is withdrawn: about the arm stages' own smoothing
+# (0.1 s), not the collision stage's 8, so a few worse frames do not take their neighbours' moves (docs/contacts.md)
+ARM_WITHDRAW_RAMP = 4
 
 Flag = Callable[[Motion, Tensor], Tensor]  # (moved motion, frames (n,)) -> (n,) frames worse for another reason
 
@@ -74,12 +77,12 @@ def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> Frame
 
 def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved: Callable[[Tensor], Motion],
                         changed: Tensor, flag: Flag | None = None, before: FrameCheck | None = None,
-                        ramp: int | None = None) -> Tensor:  # fmt: skip
+                        ramp: int = ARM_WITHDRAW_RAMP) -> Tensor:  # fmt: skip
     """``(F,)`` the share of a stage's change kept per frame: the collision stage's never-worse check on the
     ``changed (n,)`` frames, with the arms' penetration as the judge reads it (:func:`arm_check`); ``moved(weight
     (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse; ``before``:
     the input's :func:`arm_check` on ``changed`` where the stage has it already (measured otherwise); ``ramp``:
-    frames at 30 fps over which a withdrawal blends (the collision stage's ``fallback_ramp`` when None)."""
+    frames at 30 fps over which a withdrawal blends."""
     cp = CollisionParams()
     no_contacts = ContactInstances(*(torch.zeros(0, dtype=torch.long),) * 3)
 
@@ -92,9 +95,9 @@ def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved
         before = arm_check(ctx, rb, motion, changed)
     before = spread_check(before, motion.num_frames, ctx.target.num_vertices)
     settings = FallbackSettings(cp.fallback_rounds, cp.fallback_factor, cp.fallback_floor,
-                                at_fps(cp.fallback_ramp if ramp is None else ramp, motion.fps))  # fmt: skip
+                                at_fps(ramp, motion.fps))  # fmt: skip
     check = run_never_worse(NeverWorse.start(before, no_contacts), changed, measure, cp, 1.0 / rb.scale, settings)
     return check.weight
 
 
-__all__ = ["ArmFigures", "arm_check", "never_worse_weights", "spread_check"]
+__all__ = ["ARM_WITHDRAW_RAMP", "ArmFigures", "arm_check", "never_worse_weights", "spread_check"]

@@ -137,11 +137,11 @@ def test_the_arm_stages_check_withdraws_over_the_ramp_it_is_given(monkeypatch) -
     rb = SimpleNamespace(scale=1.0)
     motion = SimpleNamespace(num_frames=F, fps=30.0, weight=torch.zeros(F))  # the input: none of the change
 
-    def weights(ramp: int | None) -> Tensor:
+    def weights(ramp: int) -> Tensor:
         return judged_check.never_worse_weights(ctx, rb, motion, lambda w: SimpleNamespace(weight=w),  # type: ignore[arg-type]
                                                 torch.arange(F), ramp=ramp)  # fmt: skip
 
-    short, default = weights(2), weights(None)  # None: the collision stage's 8 frames
+    short, default = weights(2), weights(8)  # 8: the collision stage's ramp
     assert float(short[20]) == 0.0 and float(default[20]) == 0.0
     assert bool((short[:17] == 1.0).all()) and bool((short[24:] == 1.0).all())
     assert float(default[16]) < 1.0 and float(default[24]) < 1.0
