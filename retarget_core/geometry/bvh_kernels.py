@@ -40,18 +40,31 @@ def _box_distance(lo: np.ndarray, hi: np.ndarray, px: float, py: float, pz: floa
 
 
 @_compiled
-def _segment_distance(px: float, py: float, pz: float, x: np.ndarray, y: np.ndarray) -> float:
-    """Distance of ``p`` to the segment ``x, y (3,)``."""
+def _segment_point(px: float, py: float, pz: float, x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Closest point to ``p`` on the segment ``x, y (3,)``."""
     dx, dy, dz = y[0] - x[0], y[1] - x[1], y[2] - x[2]
     t = ((px - x[0]) * dx + (py - x[1]) * dy + (pz - x[2]) * dz) / max(dx * dx + dy * dy + dz * dz, 1e-300)
     t = min(max(t, 0.0), 1.0)
-    ex, ey, ez = x[0] + dx * t - px, x[1] + dy * t - py, x[2] + dz * t - pz
-    return math.sqrt(ex * ex + ey * ey + ez * ez)
+    return x[0] + dx * t, x[1] + dy * t, x[2] + dz * t
 
 
 @_compiled
-def triangle_distance(px: float, py: float, pz: float, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
-    """Exact distance of ``p`` to triangle ``a, b, c (3,)`` (Ericson 5.1.5, as
+def _edge_point(px: float, py: float, pz: float, a: np.ndarray, b: np.ndarray, c: np.ndarray
+                ) -> tuple[float, float, float]:  # fmt: skip
+    """Closest point to ``p`` on the edges of a triangle without area (the first of the nearest)."""
+    best, bx, by, bz = np.inf, 0.0, 0.0, 0.0
+    for x, y in ((a, b), (b, c), (a, c)):
+        qx, qy, qz = _segment_point(px, py, pz, x, y)
+        d = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+        if d < best:
+            best, bx, by, bz = d, qx, qy, qz
+    return bx, by, bz
+
+
+@_compiled
+def closest_point(px: float, py: float, pz: float, a: np.ndarray, b: np.ndarray, c: np.ndarray
+                  ) -> tuple[float, float, float]:  # fmt: skip
+    """Closest point to ``p`` on triangle ``a, b, c (3,)`` (Ericson 5.1.5, as
     :func:`retarget_core.geometry.closest_point.closest_points`; without area: its edges)."""
     abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
     acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
@@ -66,27 +79,31 @@ def triangle_distance(px: float, py: float, pz: float, a: np.ndarray, b: np.ndar
     ab_len = math.sqrt(abx * abx + aby * aby + abz * abz)
     ac_len = math.sqrt(acx * acx + acy * acy + acz * acz)
     if abs(denom) <= 1e-30 * max(ab_len * ac_len, 1e-300) + 1e-300:  # no area: the nearest of its edges
-        return min(_segment_distance(px, py, pz, a, b), _segment_distance(px, py, pz, b, c),
-                   _segment_distance(px, py, pz, a, c))  # fmt: skip
+        return _edge_point(px, py, pz, a, b, c)
     if d1 <= 0 and d2 <= 0:
-        qx, qy, qz = a[0], a[1], a[2]
-    elif d3 >= 0 and d4 <= d3:
-        qx, qy, qz = b[0], b[1], b[2]
-    elif d6 >= 0 and d5 <= d6:
-        qx, qy, qz = c[0], c[1], c[2]
-    elif vc <= 0 and d1 >= 0 and d3 <= 0:
+        return a[0], a[1], a[2]
+    if d3 >= 0 and d4 <= d3:
+        return b[0], b[1], b[2]
+    if d6 >= 0 and d5 <= d6:
+        return c[0], c[1], c[2]
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
         t = min(max(d1 / (d1 - d3) if d1 - d3 != 0 else d1, 0.0), 1.0)
-        qx, qy, qz = a[0] + abx * t, a[1] + aby * t, a[2] + abz * t
-    elif vb <= 0 and d2 >= 0 and d6 <= 0:
+        return a[0] + abx * t, a[1] + aby * t, a[2] + abz * t
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
         t = min(max(d2 / (d2 - d6) if d2 - d6 != 0 else d2, 0.0), 1.0)
-        qx, qy, qz = a[0] + acx * t, a[1] + acy * t, a[2] + acz * t
-    elif va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+        return a[0] + acx * t, a[1] + acy * t, a[2] + acz * t
+    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
         den = (d4 - d3) + (d5 - d6)
         t = min(max((d4 - d3) / den if den != 0 else d4 - d3, 0.0), 1.0)
-        qx, qy, qz = b[0] + (c[0] - b[0]) * t, b[1] + (c[1] - b[1]) * t, b[2] + (c[2] - b[2]) * t
-    else:
-        v, w = vb / denom, vc / denom
-        qx, qy, qz = a[0] + abx * v + acx * w, a[1] + aby * v + acy * w, a[2] + abz * v + acz * w
+        return b[0] + (c[0] - b[0]) * t, b[1] + (c[1] - b[1]) * t, b[2] + (c[2] - b[2]) * t
+    v, w = vb / denom, vc / denom
+    return a[0] + abx * v + acx * w, a[1] + aby * v + acy * w, a[2] + abz * v + acz * w
+
+
+@_compiled
+def triangle_distance(px: float, py: float, pz: float, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Exact distance of ``p`` to triangle ``a, b, c (3,)`` (:func:`closest_point`)."""
+    qx, qy, qz = closest_point(px, py, pz, a, b, c)
     ex, ey, ez = px - qx, py - qy, pz - qz
     return math.sqrt(ex * ex + ey * ey + ez * ez)
 
@@ -250,4 +267,4 @@ def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MI
         list(pool.map(walk, [slice(s, s + step) for s in range(0, count, step)]))
 
 
-__all__ = ["closest_walk", "refit_boxes", "run_in_blocks", "triangle_distance", "winding_walk"]
+__all__ = ["closest_point", "closest_walk", "refit_boxes", "run_in_blocks", "triangle_distance", "winding_walk"]

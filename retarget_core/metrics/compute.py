@@ -25,7 +25,6 @@ from retarget_core.contacts.hand_distance import (
     HandDistanceParams,
     HandPartDistances,
     HandPartGeometry,
-    _memberships,
     hand_part_distances,
     hand_part_geometry,
 )
@@ -402,14 +401,9 @@ class ContactHandMeter:
         the per-frame bounds of the other parts' triangles are not computed)."""
         if p not in self._by_part:
             g = self.geometry
-            keep = torch.nonzero(g.tri_chunk_part == p).flatten()
-            vertices = g.tri_chunk_vertices.index_select(0, keep)
             measured = torch.zeros_like(g.measured)
             measured[:, p] = g.measured[:, p]
-            self._by_part[p] = replace(
-                g, tri_chunks=g.tri_chunks.index_select(0, keep), tri_chunk_part=g.tri_chunk_part.index_select(0, keep),
-                tri_chunk_vertices=vertices, tri_chunk_members=_memberships(vertices), measured=measured,
-            )  # fmt: skip
+            self._by_part[p] = replace(g, measured=measured)
         return self._by_part[p]
 
     def copy(self, frames: Tensor, other: ContactHandMeasures) -> None:
