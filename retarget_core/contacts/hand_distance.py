@@ -232,23 +232,23 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
     )  # fmt: skip
 
 
-def _block_distances(geom: HandPartGeometry, x: Tensor, cutoff: float, slack: float, params: HandDistanceParams
+def _block_distances(geom: HandPartGeometry, x: Tensor, cutoffs: Tensor, slack: float, params: HandDistanceParams
                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
-    """One block of frames ``x (B, V, 3)`` (float64): distance, inside ``(B, 2, P)``, pairs ``(B, 2, P, K, 2)``,
-    pair distances ``(B, 2, P, K)``."""
-    bsz, shape = x.shape[0], (x.shape[0], len(geom.hands), len(geom.parts))
+    """One block of frames ``x (B, V, 3)`` (float64) measured up to ``cutoffs (B, 2, P)`` (0: not measured):
+    distance, inside ``(B, 2, P)``, pairs ``(B, 2, P, K, 2)``, pair distances ``(B, 2, P, K)``."""
+    bsz, shape = x.shape[0], tuple(cutoffs.shape)
     centres = torch.zeros(bsz, len(geom.ring_count), 3, dtype=x.dtype).index_add_(1, geom.ring_cap, x[:, geom.ring_vertex])
     ext = torch.cat([x, centres / geom.ring_count.clamp_min(1).to(x.dtype)[None, :, None]], dim=1).numpy()
+    reach = cutoffs.to(torch.float64).numpy()
     dist = np.full(shape, np.inf)
     inside = np.zeros(shape, dtype=np.bool_)
     pairs = np.full((*shape, params.pairs, 2), -1, dtype=np.int64)
     pair_d = np.full((*shape, params.pairs), np.inf)
     tables = (geom.faces.numpy(), geom.tri_chunks.numpy(), geom.tri_chunk_vertices.numpy(), geom.part_chunks,
-              geom.hand_chunks.numpy(), geom.chunks_of_hand.numpy(), geom.hand_table, geom.hand_local.numpy(),
-              geom.measured.numpy())  # fmt: skip
+              geom.hand_chunks.numpy(), geom.chunks_of_hand.numpy(), geom.hand_table, geom.hand_local.numpy())  # fmt: skip
 
     def walk(s: slice) -> None:
-        block_distances(ext[s], x.shape[1], *tables, cutoff, slack, params.tie_m, dist[s], inside[s], pairs[s],
+        block_distances(ext[s], x.shape[1], *tables, reach[s], slack, params.tie_m, dist[s], inside[s], pairs[s],
                         pair_d[s])  # fmt: skip
 
     run_in_blocks(walk, bsz, params.frames_per_thread)
@@ -262,10 +262,13 @@ def hand_part_distances(
     params: HandDistanceParams | None = None,
     geometry: HandPartGeometry | None = None,
     height: float | None = None,
+    cutoffs: Tensor | None = None,
 ) -> HandPartDistances:
     """Distances ``(F, 2, P)`` from each hand to each part of the posed body ``posed (F, V, 3)`` (see the module
     doc). ``character`` gives the rest pose and height; without it, give ``height`` (the first frame then lays
-    out the chunks). ``geometry``: a :func:`hand_part_geometry` of this body to reuse."""
+    out the chunks). ``geometry``: a :func:`hand_part_geometry` of this body to reuse. ``cutoffs (F, 2, P)``:
+    each group's own cutoff (m on the body; 0: not measured); default ``params.max_distance_m`` (scaled). Only
+    the pairs :attr:`HandPartGeometry.measured` names are measured."""
     params = params or HandDistanceParams()
     if character is not None:
         rest, height = character.vertices, height or character.height
@@ -285,7 +288,9 @@ def hand_part_distances(
         for s0 in range(0, f_n, params.frames_per_block):
             s1 = min(f_n, s0 + params.frames_per_block)
             x = posed[s0:s1].detach().to(torch.float64)
-            dist[s0:s1], inside[s0:s1], pairs[s0:s1], pair_d[s0:s1] = _block_distances(geom, x, cutoff, slack, params)
+            given = torch.full((s1 - s0, n_h, n_p), cutoff) if cutoffs is None else cutoffs[s0:s1]
+            reach = given * geom.measured[None]  # (B, 2, P)
+            dist[s0:s1], inside[s0:s1], pairs[s0:s1], pair_d[s0:s1] = _block_distances(geom, x, reach, slack, params)
     return HandPartDistances(geom.hands, geom.parts, dist, inside, pairs, pair_d, geom.measured.clone(), cutoff)
 
 

@@ -252,15 +252,16 @@ def _group_result(ext: np.ndarray, faces: np.ndarray, vertices: np.ndarray, hand
 def _frame_distances(ext: np.ndarray, n_v: int, faces: np.ndarray, tri_chunks: np.ndarray,
                     tri_chunk_vertices: np.ndarray, part_chunks: np.ndarray, hand_chunks: np.ndarray,
                     chunks_of_hand: np.ndarray, hand_vertices: np.ndarray, hand_local: np.ndarray,
-                    measured: np.ndarray, cutoff: float, slack: float, tie: float, dist: np.ndarray,
-                    inside: np.ndarray, pairs: np.ndarray, pair_d: np.ndarray) -> None:  # fmt: skip
+                    cutoffs: np.ndarray, slack: float, tie: float, dist: np.ndarray, inside: np.ndarray,
+                    pairs: np.ndarray, pair_d: np.ndarray) -> None:  # fmt: skip
     """One posed frame ``ext (V + caps, 3)`` (``n_v`` body vertices, then the caps' centres): per (hand, part)
-    group, into ``dist, inside (2, P)``, ``pairs (2, P, K, 2)`` and ``pair_d (2, P, K)`` (filled with inf,
-    False and -1 before the call). ``hand_vertices (2, N)`` and ``part_chunks (P, M)`` -1 padded."""
+    group measured up to ``cutoffs (2, P)`` (0: not measured), into ``dist, inside (2, P)``, ``pairs (2, P, K,
+    2)`` and ``pair_d (2, P, K)`` (filled with inf, False and -1 before the call). ``hand_vertices (2, N)`` and
+    ``part_chunks (P, M)`` -1 padded."""
     tc_c = np.empty((tri_chunks.shape[0], 3))
     tc_r = np.empty(tri_chunks.shape[0])
-    for p in range(measured.shape[1]):
-        if measured[:, p].any():  # only the chunks of the parts measured
+    for p in range(cutoffs.shape[1]):
+        if (cutoffs[:, p] > 0).any():  # only the chunks of the parts measured
             _spheres(ext, tri_chunk_vertices, part_chunks[p], tc_c, tc_r)
     hc_c = np.empty((hand_chunks.shape[0], 3))
     hc_r = np.empty(hand_chunks.shape[0])
@@ -273,10 +274,11 @@ def _frame_distances(ext: np.ndarray, n_v: int, faces: np.ndarray, tri_chunks: n
     _spheres(ext, hand_vertices, np.arange(hand_vertices.shape[0]), hand_c, hand_r)
     best, side = np.empty(width), np.empty(width)
     closest_face, closest = np.empty(width, dtype=np.int64), np.empty((width, 3))
-    for h in range(measured.shape[0]):
+    for h in range(cutoffs.shape[0]):
         verts = hand_vertices[h][hand_vertices[h] >= 0]
-        for p in range(measured.shape[1]):
-            if not measured[h, p]:
+        for p in range(cutoffs.shape[1]):
+            cutoff = cutoffs[h, p]
+            if cutoff <= 0:
                 continue
             hj, tq, lb = _chunk_pairs(chunks_of_hand[h], part_chunks[p], hand_c[h], hand_r[h], hc_c, hc_r, tc_c, tc_r,
                                       cutoff + slack)  # fmt: skip
@@ -299,13 +301,13 @@ def _frame_distances(ext: np.ndarray, n_v: int, faces: np.ndarray, tri_chunks: n
 def block_distances(ext: np.ndarray, n_v: int, faces: np.ndarray, tri_chunks: np.ndarray,
                     tri_chunk_vertices: np.ndarray, part_chunks: np.ndarray, hand_chunks: np.ndarray,
                     chunks_of_hand: np.ndarray, hand_vertices: np.ndarray, hand_local: np.ndarray,
-                    measured: np.ndarray, cutoff: float, slack: float, tie: float, dist: np.ndarray,
-                    inside: np.ndarray, pairs: np.ndarray, pair_d: np.ndarray) -> None:  # fmt: skip
-    """:func:`_frame_distances` of every frame of ``ext (B, V + caps, 3)`` into ``dist, inside (B, 2, P)``,
-    ``pairs (B, 2, P, K, 2)``, ``pair_d (B, 2, P, K)``."""
+                    cutoffs: np.ndarray, slack: float, tie: float, dist: np.ndarray, inside: np.ndarray,
+                    pairs: np.ndarray, pair_d: np.ndarray) -> None:  # fmt: skip
+    """:func:`_frame_distances` of every frame of ``ext (B, V + caps, 3)`` with ``cutoffs (B, 2, P)`` into
+    ``dist, inside (B, 2, P)``, ``pairs (B, 2, P, K, 2)``, ``pair_d (B, 2, P, K)``."""
     for b in range(ext.shape[0]):
         _frame_distances(ext[b], n_v, faces, tri_chunks, tri_chunk_vertices, part_chunks, hand_chunks, chunks_of_hand,
-                         hand_vertices, hand_local, measured, cutoff, slack, tie, dist[b], inside[b], pairs[b],
+                         hand_vertices, hand_local, cutoffs[b], slack, tie, dist[b], inside[b], pairs[b],
                          pair_d[b])  # fmt: skip
 
 

@@ -10,7 +10,7 @@ see docs/metrics.md for every field.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -358,7 +358,6 @@ class ContactHandMeter:
         self.frame_far = torch.zeros(frames, dtype=torch.long)
         self.frame_false = torch.zeros(frames, dtype=torch.long)
         self.false_m = FALSE_CONTACT_M * character.height / REFERENCE_HEIGHT_M
-        self._by_part: dict[int, HandPartGeometry] = {}
 
     def measure(self, verts: Tensor, frames: Tensor, candidates: Tensor | None = None) -> None:
         """``verts (C, V, 3)``: the posed frames ``frames (C,)`` (increasing). ``candidates (C, 2, P)``: the
@@ -382,29 +381,15 @@ class ContactHandMeter:
     def _distances(self, verts: Tensor, need: Tensor, far_only: Tensor) -> Tensor:
         """Hand-to-part distances ``(C, 2, P)`` of the pairs ``need (C, 2, P)`` up to the full reach and of the
         pairs ``far_only`` up to the false-contact distance (all a false contact asks; nearer frames are culled
-        sooner), inf elsewhere: part by part on the frames that need it, each query holding that part's
-        triangles only."""
+        sooner), inf elsewhere: one query over the frames that need either."""
         dist = torch.full(need.shape, float("inf"), dtype=torch.float64)
-        false_reach = HandDistanceParams(max_distance_m=FALSE_CONTACT_M)
-        for p in torch.nonzero((need | far_only).any(dim=(0, 1))).flatten().tolist():
-            full = need[:, :, p].any(1)
-            for rows, params in ((full, None), (far_only[:, :, p].any(1) & ~full, false_reach)):
-                index = torch.nonzero(rows).flatten()
-                if len(index):
-                    found = hand_part_distances(self.character, self.parts, verts[index], params,
-                                                geometry=self._part_geometry(p))  # fmt: skip
-                    dist[index, :, p] = found.distance[:, :, p]
+        rows = torch.nonzero((need | far_only).flatten(1).any(1)).flatten()
+        if len(rows):
+            cutoffs = torch.where(need, self.max_distance, torch.where(far_only, self.false_m, 0.0))
+            found = hand_part_distances(self.character, self.parts, verts[rows], geometry=self.geometry,
+                                        cutoffs=cutoffs[rows])  # fmt: skip
+            dist[rows] = found.distance
         return dist
-
-    def _part_geometry(self, p: int) -> HandPartGeometry:
-        """The hand-to-part geometry restricted to part ``p``'s triangle chunks (the same distances for ``p``;
-        the per-frame bounds of the other parts' triangles are not computed)."""
-        if p not in self._by_part:
-            g = self.geometry
-            measured = torch.zeros_like(g.measured)
-            measured[:, p] = g.measured[:, p]
-            self._by_part[p] = replace(g, measured=measured)
-        return self._by_part[p]
 
     def copy(self, frames: Tensor, other: ContactHandMeasures) -> None:
         """Take the results of ``frames (C,)`` from ``other``, measured on a motion posed the same there."""
