@@ -329,6 +329,8 @@ def sample_pairs(
         raise ValueError("sample_pairs: a vertex subset needs the SDF's precomputed clusters")
     cull = _pair_cull(sdf, posed.detach(), seg_mats.detach(), allowed, vertices)
     reach = sdf.blend if inside_only else sdf.margin
+    if _compiled_path(sdf, posed, seg_mats):
+        return body_samples(sdf, _compiled_samples(sdf, cull, posed, seg_mats, reach))
     n_pts = posed.shape[1]
     rot, trans = seg_mats[..., :3], seg_mats[..., 3]  # (F, S, 3, 3), (F, S, 3)
     frames, verts, segs, dists = [], [], [], []
@@ -351,6 +353,47 @@ def sample_pairs(
         empty = torch.zeros(0, dtype=torch.long)
         return PairSamples(empty, empty, empty, posed.new_zeros(0))
     return body_samples(sdf, PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists)))
+
+
+def _compiled_path(sdf: PartSDF, posed: Tensor, seg_mats: Tensor) -> bool:
+    """Whether :func:`sample_pairs` can take the compiled path: no gradient asked, CPU tensors, and every grid at
+    least two voxels along each axis."""
+    if posed.requires_grad or seg_mats.requires_grad or posed.device.type != "cpu":
+        return False
+    return all(g is None or (g.device.type == "cpu" and min(g.shape[1:]) >= 2) for g in sdf.grids)
+
+
+def _compiled_samples(sdf: PartSDF, cull: _PairCull, posed: Tensor, seg_mats: Tensor, reach: float) -> PairSamples:
+    """:func:`sample_pairs`' candidates and distances, segment by segment through the compiled search
+    (:func:`retarget_core.energy.pair_samples_kernel.segment_samples`); the same samples, in the same order."""
+    from retarget_core.energy.pair_samples_kernel import segment_samples
+
+    f_n = posed.shape[0]
+    clusters = cull.clusters
+    pts = posed.detach().double().contiguous().numpy()
+    mats = seg_mats.detach().double()
+    rot, trans = mats[..., :3].contiguous().numpy(), mats[..., 3].contiguous().numpy()
+    centre = cull.centre.view(f_n, -1, 3).double().contiguous().numpy()
+    radius = cull.radius.view(f_n, -1)[0].double().numpy() if f_n else np.zeros(0)
+    members = clusters.members.numpy()
+    slot = cull.slot.numpy() if cull.slot is not None else np.zeros(0, dtype=np.int64)
+    box_lo, box_hi = cull.lo.double().numpy(), cull.hi.double().numpy()
+    frames, verts, segs, dists = [], [], [], []
+    for j in torch.nonzero(cull.overlap.any(dim=(0, 1))).flatten().tolist():
+        grid = sdf.grids[j]
+        assert grid is not None  # overlap holds segments with a grid only
+        cand = cull.overlap[:, :, j].index_select(1, clusters.part).numpy()
+        f, v, d = segment_samples(grid.detach().numpy(), sdf.origin[j].double().numpy(), float(sdf.voxel[j]),
+                                  float(sdf.blend), box_lo[j], box_hi[j], rot[:, j], trans[:, j], pts, cand, centre,
+                                  radius, members, slot, float(reach))  # fmt: skip
+        frames.append(torch.from_numpy(f))
+        verts.append(torch.from_numpy(v))
+        segs.append(torch.full((len(f),), j, dtype=torch.long))
+        dists.append(torch.from_numpy(d).to(posed.dtype))
+    if not frames:
+        empty = torch.zeros(0, dtype=torch.long)
+        return PairSamples(empty, empty, empty, posed.new_zeros(0))
+    return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
 
 
 @torch.no_grad()

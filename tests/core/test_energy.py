@@ -318,3 +318,30 @@ def test_compiled_grid_lookup_matches_the_tensor_form_and_its_gradient() -> None
     assert torch.allclose(got, want, atol=1e-12)
     assert torch.allclose(g_got, g_want, atol=1e-9)
     assert ((x < lo) | (x > hi)).any() and (g_want.abs() > 0.1).any()  # points outside; gradients not trivial
+
+
+@pytest.mark.parametrize("inside_only", [False, True])
+def test_compiled_pair_samples_match_the_tensor_search(boxes, shared_data: Path, monkeypatch, inside_only: bool) -> None:
+    """Without gradients, :func:`sample_pairs` searches and samples through the compiled kernel
+    (:mod:`retarget_core.energy.pair_samples_kernel`): the same samples in the same order, the same distances (to
+    float64 rounding), as the tensor search it replaces, on boxes pushed into each other and on a real body."""
+    import retarget_core.energy.sdf as sdf_module
+    from retarget_core.loading import load_character
+
+    ch, _, parts, sdf = boxes
+    cases = [(sdf, *(x.double() for x in _pose(ch, parts, depth))) for depth in (-0.005, 0.01, 0.03)]
+    loaded = load_character(shared_data / "characters" / "mh_male_bulky.glb")
+    body_parts_ = body_parts(loaded.character, loaded.mapping)
+    real = build_part_sdf(loaded.character, body_parts_)
+    bent = loaded.character.vertices.double()[None].repeat(2, 1, 1)
+    bent[1, :, 0] = bent[1, :, 0] * 0.9  # squeezed sideways: arms into the torso
+    cases.append((real, bent, torch.eye(3, 4, dtype=torch.float64).expand(2, body_parts_.num_parts, 3, 4)))
+    for s, verts, mats in cases:
+        got = sample_pairs(s, verts, mats, inside_only=inside_only)
+        with monkeypatch.context() as m:
+            m.setattr(sdf_module, "_compiled_path", lambda *args: False)
+            want = sample_pairs(s, verts, mats, inside_only=inside_only)
+        assert len(want.frame) > 0
+        for a, b in ((got.frame, want.frame), (got.vertex, want.vertex), (got.part, want.part)):
+            assert torch.equal(a, b)
+        assert torch.allclose(got.distance, want.distance, atol=1e-12, rtol=0)

@@ -1,0 +1,98 @@
+"""The candidate search and sampling of :func:`retarget_core.energy.sdf.sample_pairs` without gradients, compiled
+(numba) on the CPU: per segment, frame and cluster of vertices, the same culling (the cluster's sphere against the
+segment's grid box, then against the segment channel at its centre) and the blended signed distance of each
+member vertex, in one pass instead of a dozen tensor operations per segment. Computed in float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from retarget_core.energy.sdf_kernel import _axis, _trilinear
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _local(rot: np.ndarray, trans: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """A posed point taken to a segment's rest frame: ``rot (3, 3)^T (p - trans (3,))``."""
+    dx, dy, dz = x - trans[0], y - trans[1], z - trans[2]
+    return (rot[0, 0] * dx + rot[1, 0] * dy + rot[2, 0] * dz, rot[0, 1] * dx + rot[1, 1] * dy + rot[2, 1] * dz,
+            rot[0, 2] * dx + rot[1, 2] * dy + rot[2, 2] * dz)  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_value(grid: np.ndarray, lo: np.ndarray, voxel: float, blend: float, x: float, y: float, z: float,
+                segment_only: bool) -> float:  # fmt: skip
+    """Blended signed distance at a rest-frame point (``segment_only``: the segment channel alone), as
+    :func:`retarget_core.energy.sdf_kernel._sample`."""
+    i, tx, _, ox = _axis(x, lo[0], voxel, grid.shape[3])
+    j, ty, _, oy = _axis(y, lo[1], voxel, grid.shape[2])
+    k, tz, _, oz = _axis(z, lo[2], voxel, grid.shape[1])
+    outside = math.sqrt(ox * ox + oy * oy + oz * oz)
+    seg = _trilinear(grid, 0, i, j, k, tx, ty, tz)[0]
+    if segment_only:
+        return seg + outside
+    char = _trilinear(grid, 1, i, j, k, tx, ty, tz)[0]
+    p = min(max(seg / blend, 0.0), 1.0)
+    return p * seg + (1.0 - p) * char + outside
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_gap(lo: np.ndarray, hi: np.ndarray, x: float, y: float, z: float) -> float:
+    """Distance of a point to the box ``lo, hi (3,)`` (0 inside)."""
+    dx = x - min(max(x, lo[0]), hi[0])
+    dy = y - min(max(y, lo[1]), hi[1])
+    dz = z - min(max(z, lo[2]), hi[2])
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@numba.njit(cache=True, nogil=True)
+def segment_samples(grid: np.ndarray, lo: np.ndarray, voxel: float, blend: float, box_lo: np.ndarray,
+                    box_hi: np.ndarray, rot: np.ndarray, trans: np.ndarray, posed: np.ndarray, cand: np.ndarray,
+                    centre: np.ndarray, radius: np.ndarray, members: np.ndarray, slot: np.ndarray, reach: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The samples of one segment: per frame ``f`` and cluster ``c`` with ``cand[f, c]`` (frames, then clusters
+    in order), when the cluster's sphere (``centre (F, C, 3)``, ``radius (C,)``) meets the grid box ``box_lo,
+    box_hi (3,)`` in the segment's frame (``rot (F, 3, 3)``, ``trans (F, 3)``) and the segment channel at its
+    centre minus its radius is within ``reach``: each member of ``members (C, K)`` (-1 padded; row of ``posed
+    (F, N, 3)`` through ``slot (V,)`` when not empty). Returns frame, vertex ``(M,)`` and distance ``(M,)``."""
+    cap = 1024
+    frame = np.empty(cap, dtype=np.int64)
+    vertex = np.empty(cap, dtype=np.int64)
+    dist = np.empty(cap)
+    n = 0
+    for f in range(cand.shape[0]):
+        for c in range(cand.shape[1]):
+            if not cand[f, c]:
+                continue
+            cx, cy, cz = _local(rot[f], trans[f], centre[f, c, 0], centre[f, c, 1], centre[f, c, 2])
+            if _box_gap(box_lo, box_hi, cx, cy, cz) > radius[c]:
+                continue
+            if _grid_value(grid, lo, voxel, blend, cx, cy, cz, True) - radius[c] > reach:
+                continue
+            for m in range(members.shape[1]):
+                v = members[c, m]
+                if v < 0:
+                    break
+                row = v if len(slot) == 0 else slot[v]
+                x, y, z = _local(rot[f], trans[f], posed[f, row, 0], posed[f, row, 1], posed[f, row, 2])
+                if n == cap:
+                    cap *= 2
+                    frame, vertex, dist = _grown(frame, cap), _grown(vertex, cap), _grown(dist, cap)
+                frame[n], vertex[n] = f, v
+                dist[n] = _grid_value(grid, lo, voxel, blend, x, y, z, False)
+                n += 1
+    return frame[:n], vertex[:n], dist[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _grown(a: np.ndarray, cap: int) -> np.ndarray:
+    """``a`` copied into an array of ``cap`` entries."""
+    out = np.empty(cap, dtype=a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+__all__ = ["segment_samples"]
