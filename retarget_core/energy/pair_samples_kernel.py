@@ -1,7 +1,11 @@
-"""The candidate search and sampling of :func:`retarget_core.energy.sdf.sample_pairs` without gradients, compiled
-(numba) on the CPU: per segment, frame and cluster of vertices, the same culling (the cluster's sphere against the
-segment's grid box, then against the segment channel at its centre) and the blended signed distance of each
-member vertex, in one pass instead of a dozen tensor operations per segment. Computed in float64.
+"""Compiled (numba, CPU) searches of one segment's grid, without gradients, each one pass instead of a dozen tensor
+operations per segment; computed in float64:
+
+- :func:`segment_samples`: the candidate search and sampling of :func:`retarget_core.energy.sdf.sample_pairs`
+  (per frame and cluster of vertices, the cluster's sphere against the grid box, then against the segment
+  channel at its centre, then the blended signed distance of each member vertex);
+- :func:`segment_triples`: the candidate triples of :func:`retarget_core.geometry.triples.candidate_triples`
+  (per frame and point, the point within the slack of the grid box, then its blended distance).
 """
 
 from __future__ import annotations
@@ -95,4 +99,32 @@ def _grown(a: np.ndarray, cap: int) -> np.ndarray:
     return out
 
 
-__all__ = ["segment_samples"]
+@numba.njit(cache=True, nogil=True)
+def segment_triples(grid: np.ndarray, lo: np.ndarray, voxel: float, blend: float, box_lo: np.ndarray,
+                    box_hi: np.ndarray, rot: np.ndarray, trans: np.ndarray, posed: np.ndarray, points: np.ndarray,
+                    slack: np.ndarray, rest: np.ndarray, only_penetrating: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(frame, point) ``(N,)`` each (frames, then points in order) of the points ``points (n,)`` (indices into
+    ``posed (F, P, 3)``) within ``slack[point]`` of the grid box ``box_lo, box_hi (3,)`` in the segment's frame
+    (``rot (F, 3, 3)``, ``trans (F, 3)``) whose blended distance is below ``slack[point]`` (``only_penetrating``:
+    whose depth beyond ``rest[point]`` is positive)."""
+    cap = 1024
+    frame = np.empty(cap, dtype=np.int64)
+    point = np.empty(cap, dtype=np.int64)
+    n = 0
+    for f in range(posed.shape[0]):
+        for q in points:
+            x, y, z = _local(rot[f], trans[f], posed[f, q, 0], posed[f, q, 1], posed[f, q, 2])
+            if _box_gap(box_lo, box_hi, x, y, z) > slack[q]:
+                continue
+            d = _grid_value(grid, lo, voxel, blend, x, y, z, False)
+            if not (-d - rest[q] > 0.0 if only_penetrating else d < slack[q]):
+                continue
+            if n == cap:
+                cap *= 2
+                frame, point = _grown(frame, cap), _grown(point, cap)
+            frame[n], point[n] = f, q
+            n += 1
+    return frame[:n], point[:n]
+
+
+__all__ = ["segment_samples", "segment_triples"]

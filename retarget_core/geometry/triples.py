@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.body_parts import CLUSTERS
+from retarget_core.energy.pair_samples_kernel import segment_triples
 from retarget_core.energy.sdf import PartSDF, segment_distance, vertex_clusters
 
 SENTINEL_CLUSTERS: tuple[str, ...] = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
@@ -77,35 +78,48 @@ def candidate_triples(sdf: PartSDF, points: Tensor, posed: Tensor, seg_mats: Ten
     lo = sdf.origin
     hi = lo + (sdf.size - 1).to(lo.dtype) * sdf.voxel[:, None]
     groups = []
-    f_a, p_n = posed.shape[:2]
-    slack_p = torch.as_tensor(slack, dtype=posed.dtype).expand(p_n)
+    slack_p = torch.as_tensor(slack, dtype=torch.float64, device=posed.device).expand(posed.shape[1]).contiguous()
+    posed64 = posed.detach().double().contiguous()
     with torch.no_grad():
         for j in range(parts.num_parts):
-            if sdf.grids[j] is None:
-                continue
             ok_p = allowed[part, j]
-            if not bool(ok_p.any()):
+            if sdf.grids[j] is None or not bool(ok_p.any()):
                 continue
-            p_idx = torch.nonzero(ok_p).flatten()
-            r, t = seg_mats[:, j, :, :3], seg_mats[:, j, :, 3]  # (Fa, 3, 3), (Fa, 3)
-            x = posed[:, p_idx]  # (Fa, n, 3)
-            local = torch.einsum("fji,fnj->fni", r, x - t[:, None])
-            out = (local - torch.maximum(torch.minimum(local, hi[j]), lo[j])).norm(dim=-1)
-            f_i, n_i = torch.nonzero(out <= slack_p[p_idx][None], as_tuple=True)
+            f_i, pt = _segment_triples(sdf, j, posed64, seg_mats[:, j], torch.nonzero(ok_p).flatten(), slack_p,
+                                       sdf.rest_depth[points, j], (lo[j], hi[j]), only_penetrating)  # fmt: skip
             if len(f_i) == 0:
                 continue
-            d = segment_distance(sdf, j, local[f_i, n_i])
-            pt = p_idx[n_i]
             rest = sdf.rest_depth[points[pt], j]
-            keep = (-d - rest > 0.0) if only_penetrating else d < slack_p[pt]
-            f_i, pt, rest = f_i[keep], pt[keep], rest[keep]
-            if len(f_i) == 0:
-                continue
             ex = exempt[frames[f_i], part[pt], cluster[j]]
             tol = torch.where(ex, torch.full_like(rest, contact_tolerance), torch.full_like(rest, -clearance))
             weight = sdf.geodesic_weight[points[pt], j] * torch.where(ex, contact_weight, 1.0)
             groups.append((j, f_i, pt, tol, weight, rest))
     return TripleSet(groups)
+
+
+def _segment_triples(sdf: PartSDF, j: int, posed: Tensor, mats: Tensor, p_idx: Tensor, slack: Tensor, rest: Tensor,
+                     box: tuple[Tensor, Tensor], only_penetrating: bool) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """(frame, point) ``(N,)`` of :func:`candidate_triples` for segment ``j`` (transforms ``mats (Fa, 3, 4)``)
+    and the points ``p_idx (n,)`` of ``posed (Fa, P, 3)`` (float64), with each point's ``slack (P,)`` and
+    bind-pose depth ``rest (P,)``: compiled (:func:`retarget_core.energy.pair_samples_kernel.segment_triples`)
+    where it can be."""
+    grid = sdf.grids[j]
+    assert grid is not None
+    m = mats.detach().double()
+    lo, hi = box[0].double(), box[1].double()
+    if posed.device.type == "cpu" and min(grid.shape[1:]) >= 2:
+        found = segment_triples(grid.detach().numpy(), sdf.origin[j].double().numpy(), float(sdf.voxel[j]),
+                                float(sdf.blend), lo.numpy(), hi.numpy(), m[..., :3].contiguous().numpy(),
+                                m[..., 3].contiguous().numpy(), posed.numpy(), p_idx.numpy(), slack.numpy(),
+                                rest.double().numpy(), only_penetrating)  # fmt: skip
+        return torch.from_numpy(found[0]), torch.from_numpy(found[1])
+    local = torch.einsum("fji,fnj->fni", m[..., :3], posed[:, p_idx] - m[:, None, :, 3])
+    out = (local - torch.maximum(torch.minimum(local, hi), lo)).norm(dim=-1)
+    f_i, n_i = torch.nonzero(out <= slack[p_idx][None], as_tuple=True)
+    d = segment_distance(sdf, j, local[f_i, n_i])
+    pt = p_idx[n_i]
+    keep = (-d - rest[pt].double() > 0.0) if only_penetrating else d < slack[pt]
+    return f_i[keep], pt[keep]
 
 
 def to_segment(mats: Tensor, x: Tensor) -> Tensor:

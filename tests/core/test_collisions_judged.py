@@ -97,3 +97,38 @@ def test_a_hand_in_contact_is_placed_by_its_contact_not_its_end_effector_target(
     assert w[:, 1].eq(params.end_effectors["Head"]).all()
     expected = [params.end_effectors["LeftHand"], params.contact_ee_weight, params.end_effectors["LeftHand"]]
     assert torch.allclose(w[:, 0], torch.tensor(expected))
+
+
+def test_candidate_triples_are_every_point_within_the_slack_of_an_allowed_segment() -> None:
+    """The compiled search (:func:`retarget_core.energy.pair_samples_kernel.segment_triples`) keeps exactly the
+    (segment, frame, point) triples a brute force over every one keeps: the point within the slack of the
+    segment's grid box and its blended distance below the slack (``only_penetrating``: deeper than the bind
+    pose), frames then points in order."""
+    from retarget_core.energy.sdf import segment_distance
+
+    ch = _arm_boxes()
+    before = _pushed_in(ch, 0.02, frames=3)
+    ctx = _context(ch, before)
+    sdf, points = ctx.sdf, torch.arange(ch.num_vertices)
+    poser = PointPoser(ch, points, ctx.parts.joints)
+    with torch.no_grad():
+        posed, seg_mats, _ = poser(roma.unitquat_to_rotmat(before.rotations.float()), before.translations.float())
+    exempt = torch.zeros(3, ctx.parts.num_parts, len(CLUSTERS), dtype=torch.bool)
+    part = ctx.parts.vertex_part
+    hi_all = sdf.origin + (sdf.size - 1).to(sdf.origin.dtype) * sdf.voxel[:, None]
+    for only in (False, True):
+        got = candidate_triples(sdf, points, posed, seg_mats, torch.arange(3), exempt, sdf.allowed, 0.05, 0.001,
+                                -0.001, only_penetrating=only)  # fmt: skip
+        want = []
+        for j in range(ctx.parts.num_parts):
+            if sdf.grids[j] is None:
+                continue
+            m = seg_mats[:, j].double()
+            local = torch.einsum("fji,fnj->fni", m[..., :3], posed.double() - m[:, None, :, 3])
+            gap = (local - torch.maximum(torch.minimum(local, hi_all[j].double()), sdf.origin[j].double())).norm(dim=-1)
+            f, p = torch.nonzero((gap <= 0.05) & sdf.allowed[part, j][None], as_tuple=True)
+            d = segment_distance(sdf, j, local[f, p])
+            keep = (-d - sdf.rest_depth[p, j].double() > 0) if only else d < 0.05
+            want += [(j, int(a), int(b)) for a, b in zip(f[keep], p[keep], strict=True)]
+        have = [(j, int(a), int(b)) for j, f, p, *_ in got.groups for a, b in zip(f, p, strict=True)]
+        assert have == want and len(want) > 0
