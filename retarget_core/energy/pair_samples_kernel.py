@@ -1,7 +1,7 @@
 """Compiled (numba, CPU) searches of one segment's grid, without gradients, each one pass instead of a dozen tensor
 operations per segment; computed in float64:
 
-- :func:`segment_samples`: the candidate search and sampling of :func:`retarget_core.energy.sdf.sample_pairs`
+- :func:`pair_cull` and :func:`segment_samples`: the per-frame bounds, the candidate search and the sampling of :func:`retarget_core.energy.sdf.sample_pairs`
   (per frame and cluster of vertices, the cluster's sphere against the grid box, then against the segment
   channel at its centre, then the blended signed distance of each member vertex);
 - :func:`segment_triples`: the candidate triples of :func:`retarget_core.geometry.triples.candidate_triples`
@@ -50,6 +50,50 @@ def _box_gap(lo: np.ndarray, hi: np.ndarray, x: float, y: float, z: float) -> fl
     dy = y - min(max(y, lo[1]), hi[1])
     dz = z - min(max(z, lo[2]), hi[2])
     return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@numba.njit(cache=True, nogil=True)
+def pair_cull(posed: np.ndarray, rows: np.ndarray, row_part: np.ndarray, row_cluster: np.ndarray, n_clusters: int,
+              corners: np.ndarray, rot: np.ndarray, trans: np.ndarray, allowed: np.ndarray, has_grid: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The per-frame bounds of :func:`retarget_core.energy.sdf.sample_pairs`: ``overlap (F, S, S)``, where the
+    box of part i's points (``rows (R,)`` of ``posed (F, N, 3)``, of parts ``row_part (R,)``) meets the posed
+    box of segment j's grid (rest ``corners (S, 8, 3)``, transforms ``rot (F, S, 3, 3)``, ``trans (F, S, 3)``),
+    for ``allowed (S, S)`` pairs with ``has_grid (S,)``; and ``centre (F, C, 3)``, the mean of each cluster's
+    points (``row_cluster (R,)``)."""
+    f_n, s_n = posed.shape[0], corners.shape[0]
+    overlap = np.zeros((f_n, s_n, s_n), dtype=np.bool_)
+    centre = np.zeros((f_n, n_clusters, 3))
+    count = np.zeros(n_clusters)
+    for r in range(len(rows)):
+        count[row_cluster[r]] += 1.0
+    p_lo, p_hi = np.empty((s_n, 3)), np.empty((s_n, 3))
+    g_lo, g_hi = np.empty((s_n, 3)), np.empty((s_n, 3))
+    for f in range(f_n):
+        p_lo[:], p_hi[:] = np.inf, -np.inf
+        for r in range(len(rows)):
+            i, c = row_part[r], row_cluster[r]
+            for a in range(3):
+                x = posed[f, rows[r], a]
+                p_lo[i, a], p_hi[i, a] = min(p_lo[i, a], x), max(p_hi[i, a], x)
+                centre[f, c, a] += x
+        for c in range(n_clusters):
+            for a in range(3):
+                centre[f, c, a] /= max(count[c], 1.0)
+        for j in range(s_n):
+            g_lo[j], g_hi[j] = np.inf, -np.inf
+            for k in range(8):
+                for a in range(3):
+                    x = (rot[f, j, a, 0] * corners[j, k, 0] + rot[f, j, a, 1] * corners[j, k, 1]
+                         + rot[f, j, a, 2] * corners[j, k, 2] + trans[f, j, a])  # fmt: skip
+                    g_lo[j, a], g_hi[j, a] = min(g_lo[j, a], x), max(g_hi[j, a], x)
+        for i in range(s_n):
+            for j in range(s_n):
+                if allowed[i, j] and has_grid[j]:
+                    overlap[f, i, j] = (p_lo[i, 0] <= g_hi[j, 0] and p_lo[i, 1] <= g_hi[j, 1] and p_lo[i, 2] <= g_hi[j, 2]
+                                        and p_hi[i, 0] >= g_lo[j, 0] and p_hi[i, 1] >= g_lo[j, 1]
+                                        and p_hi[i, 2] >= g_lo[j, 2])  # fmt: skip
+    return overlap, centre
 
 
 @numba.njit(cache=True, nogil=True)
@@ -127,4 +171,4 @@ def segment_triples(grid: np.ndarray, lo: np.ndarray, voxel: float, blend: float
     return frame[:n], point[:n]
 
 
-__all__ = ["segment_samples", "segment_triples"]
+__all__ = ["pair_cull", "segment_samples", "segment_triples"]

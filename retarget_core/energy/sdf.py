@@ -327,10 +327,11 @@ def sample_pairs(
     allowed = sdf.allowed if allowed is None else allowed
     if sdf.clusters is None and vertices is not None:
         raise ValueError("sample_pairs: a vertex subset needs the SDF's precomputed clusters")
-    cull = _pair_cull(sdf, posed.detach(), seg_mats.detach(), allowed, vertices)
     reach = sdf.blend if inside_only else sdf.margin
     if _compiled_path(sdf, posed, seg_mats):
+        cull = _compiled_cull(sdf, posed, seg_mats, allowed, vertices)
         return body_samples(sdf, _compiled_samples(sdf, cull, posed, seg_mats, reach))
+    cull = _pair_cull(sdf, posed.detach(), seg_mats.detach(), allowed, vertices)
     n_pts = posed.shape[1]
     rot, trans = seg_mats[..., :3], seg_mats[..., 3]  # (F, S, 3, 3), (F, S, 3)
     frames, verts, segs, dists = [], [], [], []
@@ -396,6 +397,40 @@ def _compiled_samples(sdf: PartSDF, cull: _PairCull, posed: Tensor, seg_mats: Te
     return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
 
 
+def _bounded_rows(vp: Tensor, allowed: Tensor, vertices: Tensor | None, n_pts: int) -> tuple[Tensor | None, Tensor | None]:
+    """The mesh vertices :func:`sample_pairs` bounds and clusters ``(R,)`` (None: all) and, for a vertex subset,
+    ``slot (V,)`` mesh vertex -> row of the posed points. Only the vertices of parts with an allowed pair are
+    bounded (a leg-only check skips the rest of the body); the others' boxes stay empty and their clusters are
+    never candidates."""
+    if vertices is not None:
+        return vertices, torch.full((vp.shape[0],), -1, dtype=torch.long).index_copy_(0, vertices, torch.arange(n_pts))
+    active = allowed.any(dim=1).index_select(0, vp)
+    return (None if bool(active.all()) else torch.nonzero(active).flatten()), None
+
+
+def _compiled_cull(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor, vertices: Tensor | None) -> _PairCull:
+    """:func:`_pair_cull` through the compiled kernel (:func:`retarget_core.energy.pair_samples_kernel.pair_cull`;
+    float64)."""
+    from retarget_core.energy.pair_samples_kernel import pair_cull
+
+    f_n, n_pts = posed.shape[:2]
+    vp = sdf.parts.vertex_part
+    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), vp, 0.04)
+    sub, slot = _bounded_rows(vp, allowed, vertices, n_pts)
+    mesh = torch.arange(n_pts) if sub is None else sub  # the bounded vertices
+    rows = mesh if vertices is None else torch.arange(n_pts)  # ... as rows of posed
+    mats = seg_mats.detach().double()
+    has_grid = torch.tensor([g is not None for g in sdf.grids])
+    overlap, centre = pair_cull(posed.detach().double().contiguous().numpy(), rows.numpy(), vp.index_select(0, mesh).numpy(),
+                                clusters.of_vertex.index_select(0, mesh).numpy(), clusters.part.shape[0],
+                                sdf.grid_corners().double().numpy(), mats[..., :3].contiguous().numpy(),
+                                mats[..., 3].contiguous().numpy(), allowed.numpy(), has_grid.numpy())  # fmt: skip
+    lo = sdf.origin.double()
+    hi = lo + (sdf.size - 1).double() * sdf.voxel[:, None].double()
+    radius = clusters.radius.double()[None].expand(f_n, -1).reshape(-1)
+    return _PairCull(clusters, torch.from_numpy(overlap), torch.from_numpy(centre).reshape(-1, 3), radius, lo, hi, slot)
+
+
 @torch.no_grad()
 def _pair_cull(sdf: PartSDF, p: Tensor, seg_mats: Tensor, allowed: Tensor, vertices: Tensor | None) -> _PairCull:
     """The per-frame bounds of :func:`sample_pairs` for posed points ``p (F, N, 3)``."""
@@ -405,16 +440,8 @@ def _pair_cull(sdf: PartSDF, p: Tensor, seg_mats: Tensor, allowed: Tensor, verti
     clusters = sdf.clusters or vertex_clusters(p[0], vp, 0.04)
     r_all, t_all = seg_mats[..., :3], seg_mats[..., 3]
     c_n = clusters.part.shape[0]
-    slot = None
-    # Only the vertices of parts with an allowed pair are bounded and clustered (a leg-only check skips the rest
-    # of the body); the others' boxes stay empty and their clusters are never candidates.
-    if vertices is None:
-        active = allowed.any(dim=1).index_select(0, vp)
-        sub = None if bool(active.all()) else torch.nonzero(active).flatten()
-        box_points = p if sub is None else p.index_select(1, sub)
-    else:
-        sub, box_points = vertices, p
-        slot = torch.full((vp.shape[0],), -1, dtype=torch.long).index_copy_(0, vertices, torch.arange(n_pts))
+    sub, slot = _bounded_rows(vp, allowed, vertices, n_pts)
+    box_points = p if sub is None or vertices is not None else p.index_select(1, sub)
     vp_a = vp if sub is None else vp.index_select(0, sub)
     ov = clusters.of_vertex if sub is None else clusters.of_vertex.index_select(0, sub)
     idx = vp_a.view(1, -1, 1).expand(f_n, -1, 3)
