@@ -112,24 +112,6 @@ def _triangle_spheres(ext: np.ndarray, faces: np.ndarray, tri_chunks: np.ndarray
 
 
 @_compiled
-def _chunk_gap(px: float, py: float, pz: float, tc_c: np.ndarray, tc_r: np.ndarray, q: int) -> float:
-    """Lower bound on the distance from a point to triangle chunk ``q``'s sphere."""
-    return math.sqrt((px - tc_c[q, 0]) ** 2 + (py - tc_c[q, 1]) ** 2 + (pz - tc_c[q, 2]) ** 2) - tc_r[q]
-
-
-@_compiled
-def _triangle_near(ext: np.ndarray, faces: np.ndarray, t: int, sph: np.ndarray, px: float, py: float, pz: float,
-                   bound: float) -> tuple[float, float, float, float]:  # fmt: skip
-    """Distance from a point to triangle ``t`` and its closest point, or inf when the triangle's sphere ``sph
-    (4,)`` lies beyond ``bound``."""
-    if math.sqrt((px - sph[0]) ** 2 + (py - sph[1]) ** 2 + (pz - sph[2]) ** 2) - sph[3] > bound:
-        return np.inf, 0.0, 0.0, 0.0
-    tri = faces[t]
-    qx, qy, qz = closest_point(px, py, pz, ext[tri[0]], ext[tri[1]], ext[tri[2]])
-    return math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2), qx, qy, qz
-
-
-@_compiled
 def _best_distances(ext: np.ndarray, faces: np.ndarray, hand_chunks: np.ndarray, tri_chunks: np.ndarray,
                     hj: np.ndarray, tq: np.ndarray, lb: np.ndarray, tc_c: np.ndarray, tc_r: np.ndarray,
                     hand_local: np.ndarray, cutoff: float, slack: float, tie: float, tri_sph: np.ndarray,
@@ -149,14 +131,19 @@ def _best_distances(ext: np.ndarray, faces: np.ndarray, hand_chunks: np.ndarray,
             loc = hand_local[v]
             px, py, pz = ext[v, 0], ext[v, 1], ext[v, 2]
             bound = min(best[loc] + tie, reach)
-            if _chunk_gap(px, py, pz, tc_c, tc_r, q) > bound:
+            if math.sqrt((px - tc_c[q, 0]) ** 2 + (py - tc_c[q, 1]) ** 2 + (pz - tc_c[q, 2]) ** 2) - tc_r[q] > bound:
                 continue
             _triangle_spheres(ext, faces, tri_chunks, q, tri_sph, ready)
             for m in range(tri_chunks.shape[1]):
                 t = tri_chunks[q, m]
                 if t < 0:
                     break
-                d = _triangle_near(ext, faces, t, tri_sph[q, m], px, py, pz, bound)[0]
+                sph = tri_sph[q, m]
+                if math.sqrt((px - sph[0]) ** 2 + (py - sph[1]) ** 2 + (pz - sph[2]) ** 2) - sph[3] > bound:
+                    continue
+                tri = faces[t]
+                qx, qy, qz = closest_point(px, py, pz, ext[tri[0]], ext[tri[1]], ext[tri[2]])
+                d = math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
                 if d < best[loc]:
                     best[loc] = d
                     upper = min(upper, d)
@@ -172,6 +159,7 @@ def _sides(ext: np.ndarray, faces: np.ndarray, hand_chunks: np.ndarray, tri_chun
            side: np.ndarray, closest_face: np.ndarray, closest: np.ndarray) -> None:  # fmt: skip
     """Step 3, for the vertices with ``best <= valid_reach``: the side summed over their tied triangles into
     ``side``, their first closest triangle into ``closest_face`` and its closest point into ``closest (N, 3)``."""
+    # The chunk and triangle bounds are written out as in step 2: as shared helpers the walk took 2.6 x longer.
     for i in range(len(hj)):
         if lb[i] > valid_reach:
             break
@@ -185,17 +173,22 @@ def _sides(ext: np.ndarray, faces: np.ndarray, hand_chunks: np.ndarray, tri_chun
                 continue
             px, py, pz = ext[v, 0], ext[v, 1], ext[v, 2]
             bound = best[loc] + tie
-            if _chunk_gap(px, py, pz, tc_c, tc_r, q) > bound:
+            if math.sqrt((px - tc_c[q, 0]) ** 2 + (py - tc_c[q, 1]) ** 2 + (pz - tc_c[q, 2]) ** 2) - tc_r[q] > bound:
                 continue
             _triangle_spheres(ext, faces, tri_chunks, q, tri_sph, ready)
             for m in range(tri_chunks.shape[1]):
                 t = tri_chunks[q, m]
                 if t < 0:
                     break
-                d, qx, qy, qz = _triangle_near(ext, faces, t, tri_sph[q, m], px, py, pz, bound)
+                sph = tri_sph[q, m]
+                if math.sqrt((px - sph[0]) ** 2 + (py - sph[1]) ** 2 + (pz - sph[2]) ** 2) - sph[3] > bound:
+                    continue
+                tri = faces[t]
+                a, b, c = ext[tri[0]], ext[tri[1]], ext[tri[2]]
+                qx, qy, qz = closest_point(px, py, pz, a, b, c)
+                d = math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
                 if d > bound:
                     continue
-                a, b, c = ext[faces[t, 0]], ext[faces[t, 1]], ext[faces[t, 2]]
                 nx = (b[1] - a[1]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[1] - a[1])
                 ny = (b[2] - a[2]) * (c[0] - a[0]) - (b[0] - a[0]) * (c[2] - a[2])
                 nz = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
