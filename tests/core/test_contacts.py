@@ -435,3 +435,23 @@ def test_hand_part_distances_match_brute_force(average, placed) -> None:
     got = hand_part_distances(None, parts, posed, geometry=geom, height=ch.height)
     near = sum(_check_against_brute_force(geom, posed[f], got, f) for f in range(len(posed)))
     assert near >= 4 and bool(got.inside[1, 0].any())  # the cheek frame: the left hand sunk into the head
+
+
+def test_hand_part_distances_with_a_cutoff_per_group() -> None:
+    """Each (frame, hand, part) measured up to its own cutoff (what the metrics ask): the full query's distance
+    where it lies within that cutoff, inf beyond it and where the cutoff is 0 (not measured)."""
+    ch, mapping = two_boxes(torch.float64)
+    parts = body_parts(ch, mapping)
+    torso, s = CLUSTERS.index("torso"), ch.height / 1.80
+    posed = _hand_on_top([0.002, 0.01, 0.03, -0.01], ch)  # at 1.80 m: 2 mm, 1 cm and 3 cm above, sunk in
+    full = hand_part_distances(ch, parts, posed)
+    cutoffs = torch.zeros(full.distance.shape, dtype=torch.float64)
+    cutoffs[:, 0, torso] = torch.tensor([0.005, 0.005, 0.05, 0.05]) * s  # frame 1 beyond its cutoff
+    got = hand_part_distances(ch, parts, posed, cutoffs=cutoffs)
+    expected = torch.tensor([0.002 * s, float("inf"), 0.03 * s, 0.0], dtype=torch.float64)
+    assert torch.allclose(got.distance[:, 0, torso], expected, atol=1e-6), got.distance[:, 0, torso]
+    assert torch.equal(got.distance[[0, 2, 3], 0, torso], full.distance[[0, 2, 3], 0, torso])
+    assert got.inside[:, 0, torso].tolist() == [False, False, False, True]
+    others = torch.ones(full.distance.shape, dtype=torch.bool)
+    others[:, 0, torso] = False
+    assert bool(torch.isinf(got.distance[others]).all())  # cutoff 0: not measured
