@@ -329,8 +329,9 @@ def sample_pairs(
         raise ValueError("sample_pairs: a vertex subset needs the SDF's precomputed clusters")
     reach = sdf.blend if inside_only else sdf.margin
     if _compiled_path(sdf, posed, seg_mats):
-        cull = _compiled_cull(sdf, posed, seg_mats, allowed, vertices)
-        return body_samples(sdf, _compiled_samples(sdf, cull, posed, seg_mats, reach))
+        arrays = _float64_arrays(posed, seg_mats)
+        cull = _compiled_cull(sdf, arrays, posed.dtype, allowed, vertices)
+        return body_samples(sdf, _compiled_samples(sdf, cull, arrays, posed.dtype, reach))
     cull = _pair_cull(sdf, posed.detach(), seg_mats.detach(), allowed, vertices)
     n_pts = posed.shape[1]
     rot, trans = seg_mats[..., :3], seg_mats[..., 3]  # (F, S, 3, 3), (F, S, 3)
@@ -364,16 +365,23 @@ def _compiled_path(sdf: PartSDF, posed: Tensor, seg_mats: Tensor) -> bool:
     return all(g is None or (g.device.type == "cpu" and min(g.shape[1:]) >= 2) for g in sdf.grids)
 
 
-def _compiled_samples(sdf: PartSDF, cull: _PairCull, posed: Tensor, seg_mats: Tensor, reach: float) -> PairSamples:
-    """:func:`sample_pairs`' candidates and distances, segment by segment through the compiled search
-    (:func:`retarget_core.energy.pair_samples_kernel.segment_samples`); the same samples, in the same order."""
+def _float64_arrays(posed: Tensor, seg_mats: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled path's inputs, converted once: posed points ``(F, N, 3)``, segment rotations ``(F, S, 3, 3)``
+    and translations ``(F, S, 3)``, float64."""
+    mats = seg_mats.detach().double()
+    pts = posed.detach().double().contiguous().numpy()
+    return pts, mats[..., :3].contiguous().numpy(), mats[..., 3].contiguous().numpy()
+
+
+def _compiled_samples(sdf: PartSDF, cull: _PairCull, arrays: tuple[np.ndarray, np.ndarray, np.ndarray],
+                      dtype: torch.dtype, reach: float) -> PairSamples:  # fmt: skip
+    """:func:`sample_pairs`' candidates and distances (in ``dtype``), segment by segment through the compiled
+    search (:func:`retarget_core.energy.pair_samples_kernel.segment_samples`); the same samples, in the same order."""
     from retarget_core.energy.pair_samples_kernel import segment_samples
 
-    f_n = posed.shape[0]
+    pts, rot, trans = arrays
+    f_n = pts.shape[0]
     clusters = cull.clusters
-    pts = posed.detach().double().contiguous().numpy()
-    mats = seg_mats.detach().double()
-    rot, trans = mats[..., :3].contiguous().numpy(), mats[..., 3].contiguous().numpy()
     centre = cull.centre.view(f_n, -1, 3).double().contiguous().numpy()
     radius = cull.radius.view(f_n, -1)[0].double().numpy() if f_n else np.zeros(0)
     members = clusters.members.numpy()
@@ -390,10 +398,10 @@ def _compiled_samples(sdf: PartSDF, cull: _PairCull, posed: Tensor, seg_mats: Te
         frames.append(torch.from_numpy(f))
         verts.append(torch.from_numpy(v))
         segs.append(torch.full((len(f),), j, dtype=torch.long))
-        dists.append(torch.from_numpy(d).to(posed.dtype))
+        dists.append(torch.from_numpy(d).to(dtype))
     if not frames:
         empty = torch.zeros(0, dtype=torch.long)
-        return PairSamples(empty, empty, empty, posed.new_zeros(0))
+        return PairSamples(empty, empty, empty, torch.zeros(0, dtype=dtype))
     return PairSamples(torch.cat(frames), torch.cat(verts), torch.cat(segs), torch.cat(dists))
 
 
@@ -408,23 +416,24 @@ def _bounded_rows(vp: Tensor, allowed: Tensor, vertices: Tensor | None, n_pts: i
     return (None if bool(active.all()) else torch.nonzero(active).flatten()), None
 
 
-def _compiled_cull(sdf: PartSDF, posed: Tensor, seg_mats: Tensor, allowed: Tensor, vertices: Tensor | None) -> _PairCull:
+def _compiled_cull(sdf: PartSDF, arrays: tuple[np.ndarray, np.ndarray, np.ndarray], dtype: torch.dtype,
+                   allowed: Tensor, vertices: Tensor | None) -> _PairCull:  # fmt: skip
     """:func:`_pair_cull` through the compiled kernel (:func:`retarget_core.energy.pair_samples_kernel.pair_cull`;
-    float64)."""
+    float64) on :func:`_float64_arrays` of points posed in ``dtype``."""
     from retarget_core.energy.pair_samples_kernel import pair_cull
 
-    f_n, n_pts = posed.shape[:2]
+    pts, rot, trans = arrays
+    f_n, n_pts = pts.shape[:2]
     vp = sdf.parts.vertex_part
-    clusters = sdf.clusters or vertex_clusters(posed[0].detach(), vp, 0.04)
+    clusters = sdf.clusters or vertex_clusters(torch.from_numpy(pts[0]).to(dtype), vp, 0.04)  # as the tensor path
     sub, slot = _bounded_rows(vp, allowed, vertices, n_pts)
     mesh = torch.arange(n_pts) if sub is None else sub  # the bounded vertices
     rows = mesh if vertices is None else torch.arange(n_pts)  # ... as rows of posed
-    mats = seg_mats.detach().double()
     has_grid = torch.tensor([g is not None for g in sdf.grids])
-    overlap, centre = pair_cull(posed.detach().double().contiguous().numpy(), rows.numpy(), vp.index_select(0, mesh).numpy(),
+    overlap, centre = pair_cull(pts, rows.numpy(), vp.index_select(0, mesh).numpy(),
                                 clusters.of_vertex.index_select(0, mesh).numpy(), clusters.part.shape[0],
-                                sdf.grid_corners().double().numpy(), mats[..., :3].contiguous().numpy(),
-                                mats[..., 3].contiguous().numpy(), allowed.numpy(), has_grid.numpy())  # fmt: skip
+                                sdf.grid_corners().double().numpy(), rot, trans, allowed.numpy(),
+                                has_grid.numpy())  # fmt: skip
     lo = sdf.origin.double()
     hi = lo + (sdf.size - 1).double() * sdf.voxel[:, None].double()
     radius = clusters.radius.double()[None].expand(f_n, -1).reshape(-1)
