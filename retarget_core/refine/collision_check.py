@@ -61,6 +61,7 @@ class FrameCheck:
     depth: VertexDepths
     contact: Tensor
     flagged: Tensor | None = None  # (n,) frames the measuring stage itself reads as worse (None: none)
+    excused: Tensor | None = None  # (n,) frames whose deeper penetration the stage accepts for what it gained there
 
 
 def check_frames(character: Character, sdf: PartSDF, rotations: Tensor, translations: Tensor, frames: Tensor,
@@ -138,6 +139,8 @@ def worse_frames(before: FrameCheck, after: FrameCheck, contacts: ContactInstanc
     grow = after.volume * scale**3 - vol_b
     worse = grow > torch.clamp(limits.worse_volume_fraction * vol_b, min=limits.worse_volume_m3)
     worse |= (after.max_depth - before.max_depth[idx]) * scale > limits.worse_depth_m
+    if after.excused is not None:
+        worse &= ~after.excused
     if after.flagged is not None:
         worse |= after.flagged
     if contacts.count:

@@ -27,7 +27,7 @@ Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -40,6 +40,7 @@ from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
 from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of
+from retarget_core.refine.collision_check import FrameCheck
 from retarget_core.refine.judged_check import never_worse_weights
 from retarget_core.refine.judged_contacts import source_hand_distances
 from retarget_core.refine.temporal import weighted_smooth
@@ -68,6 +69,7 @@ class HandContactParams:
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
     out_m: float = 0.005  # a hand deeper than this in a part is moved out to its surface [frames > 1 cm]
     depth_cap_m: float = 0.08  # ... read up to this depth (deeper: the hand is in another pose, not pressed in)
+    trade_depth_m: float = 0.005  # a move that keeps more source contacts may deepen the arms up to this [1 cm]
 
 
 def contact_groups(side: int) -> list[list[int]]:
@@ -287,7 +289,7 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
         state, inside = measure_both(ctx, rb, moved_motion, src, p, again, state, inside)
     moved = contact_figures(src, state, rb.scale, p)
     changed = torch.nonzero(total.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
-    weight = (never_worse_share(ctx, rb, motion, arms, total, changed, src, first, p) if len(changed)
+    weight = (never_worse_share(ctx, rb, motion, arms, total, changed, src, (first, state), p) if len(changed)
               else torch.ones(motion.num_frames))  # fmt: skip
     out = apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
     withdrawn = changed[weight[changed] < 1.0]
@@ -307,17 +309,35 @@ def near_clear_parts(src: Tensor, state: HandState, scale: float, p: HandContact
 
 
 def never_worse_share(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], total: Tensor,
-                      changed: Tensor, src: Tensor, state: HandState, p: HandContactParams) -> Tensor:  # fmt: skip
-    """``(F,)`` the share of the moves kept per frame (:func:`retarget_core.refine.judged_check.never_worse_weights`);
-    a frame where a hand comes within ``clear_m`` of a part the source keeps it clear of, and did not on the input
-    (``state``: the input's measures), is worse too."""
-    near_before = near_clear_parts(src, state, rb.scale, p)
+                      changed: Tensor, src: Tensor, states: tuple[HandState, HandState],
+                      p: HandContactParams) -> Tensor:  # fmt: skip
+    """``(F,)`` the share of the moves kept per frame (:func:`retarget_core.refine.judged_check.never_worse_weights`;
+    ``states``: the measures of the input and of the whole moves): a frame where a hand comes within ``clear_m``
+    of a part the source keeps it clear of, and did not on the input, is worse too; a frame whose whole move keeps
+    more source contacts than the input did may deepen the arms up to ``trade_depth_m`` (:func:`contact_trade`)."""
+    near_before = near_clear_parts(src, states[0], rb.scale, p)
+    gained = kept_contacts(src, states[1], rb.scale, p) > kept_contacts(src, states[0], rb.scale, p)
 
     def moved(weight: Tensor) -> Motion:
         return apply_moves(motion, arms, total * weight[:, None, None], p.max_reach)
 
-    def new_near(out: Motion, frames: Tensor) -> Tensor:
-        after = near_clear_parts(src, measure_hands(ctx, rb, out, src, p, frames, state, clear_only=True), rb.scale, p)
-        return (after[frames] & ~near_before[frames]).flatten(1).any(dim=1)
+    def verdict(out: Motion, frames: Tensor, check: FrameCheck) -> FrameCheck:
+        after = measure_hands(ctx, rb, out, src, p, frames, states[0], clear_only=True)
+        near = (near_clear_parts(src, after, rb.scale, p)[frames] & ~near_before[frames]).flatten(1).any(dim=1)
+        return replace(check, flagged=near, excused=contact_trade(gained[frames], check.max_depth / rb.scale, p))
 
-    return never_worse_weights(ctx, rb, motion, moved, changed, new_near)
+    return never_worse_weights(ctx, rb, motion, moved, changed, verdict)
+
+
+def kept_contacts(src: Tensor, state: HandState, scale: float, p: HandContactParams) -> Tensor:
+    """``(F,)`` how many of each frame's source contacts (hand, part) the judge reads as kept (within 2.5 cm)."""
+    return ((src < p.contact_m) & (state.distance < KEPT_M * scale)).flatten(1).sum(dim=1)
+
+
+def contact_trade(gained: Tensor, arm_depth: Tensor, p: HandContactParams) -> Tensor:
+    """``(n,)`` frames whose deeper arms the never-worse check accepts: their whole move keeps more source contacts
+    than the input (``gained (n,)``; fixed, so a partly withdrawn move keeps its excuse) and the arms' deepest point ``arm_depth (n,)`` (at 1.80 m) stays within
+    ``trade_depth_m``, short of what the judge counts as a frame deeper than 1 cm. A hand on a short-armed
+    character's thigh or belly brings its forearm into the body; a hand that touches where the source touches is
+    worth a few millimetres of forearm in a soft part (docs/contacts.md)."""
+    return gained & (arm_depth <= p.trade_depth_m)

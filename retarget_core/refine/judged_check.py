@@ -6,7 +6,7 @@ on the judge's closed parts): where a changed frame got worse, the change is wit
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -25,7 +25,8 @@ ARM_DEPTH_CAP_M = 0.10  # arm vertices deeper than this in a part count at this 
 # (0.1 s), not the collision stage's 8, so a few worse frames do not take their neighbours' moves (docs/contacts.md)
 ARM_WITHDRAW_RAMP = 4
 
-Flag = Callable[[Motion, Tensor], Tensor]  # (moved motion, frames (n,)) -> (n,) frames worse for another reason
+# (moved motion, frames (n,), their arm check) -> the check with the stage's own verdicts (flagged, excused frames)
+Verdict = Callable[[Motion, Tensor, FrameCheck], FrameCheck]
 
 
 @dataclass
@@ -76,11 +77,12 @@ def spread_check(check: FrameCheck, num_frames: int, num_vertices: int) -> Frame
 
 
 def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved: Callable[[Tensor], Motion],
-                        changed: Tensor, flag: Flag | None = None, before: FrameCheck | None = None,
+                        changed: Tensor, verdict: Verdict | None = None, before: FrameCheck | None = None,
                         ramp: int = ARM_WITHDRAW_RAMP) -> Tensor:  # fmt: skip
     """``(F,)`` the share of a stage's change kept per frame: the collision stage's never-worse check on the
     ``changed (n,)`` frames, with the arms' penetration as the judge reads it (:func:`arm_check`); ``moved(weight
-    (F,))`` is the input with the change scaled per frame; ``flag`` marks further frames as worse; ``before``:
+    (F,))`` is the input with the change scaled per frame; ``verdict`` marks further frames as worse, or excuses
+    their deeper penetration; ``before``:
     the input's :func:`arm_check` on ``changed`` where the stage has it already (measured otherwise); ``ramp``:
     frames at 30 fps over which a withdrawal blends."""
     cp = CollisionParams()
@@ -89,7 +91,7 @@ def never_worse_weights(ctx: RefineContext, rb: ReachBody, motion: Motion, moved
     def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
         out = moved(weight)
         check = arm_check(ctx, rb, out, frames)
-        return check if flag is None else replace(check, flagged=flag(out, frames))
+        return check if verdict is None else verdict(out, frames, check)
 
     if before is None:
         before = arm_check(ctx, rb, motion, changed)

@@ -243,3 +243,34 @@ def test_measuring_both_on_one_posing_equals_measuring_each(skinny) -> None:  # 
             for x, y in zip(vars(a).values(), vars(b).values(), strict=True):
                 assert torch.equal(x.nan_to_num(-1.0), y.nan_to_num(-1.0))
     assert bool((depth.depth > 0).any()) and bool(torch.isfinite(state.distance).any())
+
+
+def test_a_put_back_contact_may_cost_a_few_millimetres_of_arm_depth(skinny, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A short-armed character's hand put back on its thigh brings the forearm into the body: the never-worse
+    check keeps a move that regains a source contact while the arms' deepest point stays within
+    ``trade_depth_m`` (here every moved frame reads 3 mm deeper and much more volume) and withdraws it beyond."""
+    import retarget_core.refine.judged_check as jc
+
+    ch, mapping, rb = skinny
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    target = _lifted(source, mapping, LEFT, torch.tensor([side * 0.05, 0.0, 0.0], dtype=torch.float64))
+    fore = mapping.joints["LeftForeArm"]
+    real_check = jc.arm_check
+
+    def deeper_when_moved(ctx, rb_, motion, frames, chunk=64):  # type: ignore[no-untyped-def]
+        check = real_check(ctx, rb_, motion, frames, chunk)
+        moved = (motion.rotations[frames, fore] - target.rotations[frames, fore]).abs().amax(dim=-1) > 1e-6
+        check.max_depth[moved] += 0.003 * rb_.scale
+        check.volume[moved] += 1e-4
+        return check
+
+    monkeypatch.setattr(jc, "arm_check", deeper_when_moved)
+    legs = CONTACT_PARTS.index("legs")
+    ctx = _context(ch, mapping, source, target)
+    middle = list(range(16, 25, 4))  # the frames eased in and out gain nothing: their withdrawal ramps 4 frames in
+    traded = hand_contacts.run(ctx, target)
+    assert (_judged(ch, mapping, traded.motion, middle)[:, LEFT, legs] < 0.025).all()
+    strict = hand_contacts.run(ctx, target, hand_contacts.HandContactParams(trade_depth_m=0.002))
+    assert (_judged(ch, mapping, strict.motion, middle)[:, LEFT, legs] > 0.025).all()
+    assert strict.report["withdrawn_frames"] > traded.report["withdrawn_frames"]

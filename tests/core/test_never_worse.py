@@ -146,3 +146,19 @@ def test_the_arm_stages_check_withdraws_over_the_ramp_it_is_given(monkeypatch) -
     assert bool((short[:17] == 1.0).all()) and bool((short[24:] == 1.0).all())
     assert float(default[16]) < 1.0 and float(default[24]) < 1.0
     assert bool((short >= default).all())
+
+
+def test_an_excused_frame_keeps_its_deeper_change_and_a_flagged_one_falls_back() -> None:
+    harm = torch.zeros(F)
+    harm[[10, 30]] = 0.005  # 5 mm deeper with the whole change on two frames
+    before, measure_toy = _toy(harm)
+
+    def measure(weight: Tensor, frames: Tensor) -> FrameCheck:
+        check = measure_toy(weight, frames)
+        check.excused = frames == 10  # the stage accepts frame 10's depth for what it gained there
+        check.flagged = (frames == 10) & (weight[frames] > 0.3)  # ... but a flag still counts
+        return check
+
+    guard = run_never_worse(NeverWorse.start(before, NO_CONTACTS), torch.arange(F), measure, Limits(), 1.0, SETTINGS)
+    assert float(guard.weight[30]) == 0.0  # deeper and not excused: withdrawn
+    assert float(guard.weight[10]) == 0.25  # excused depth, flagged until halved twice
