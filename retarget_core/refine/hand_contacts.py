@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from retarget_core import rotations as rot
-from retarget_core.contacts.hand_depth import HandDepth, hand_depths
+from retarget_core.contacts.hand_depth import HandDepth, hand_depths, hand_tests
 from retarget_core.contacts.hand_reach import PosedParts, Reach, ReachBody, hand_reach, posed_chunks, reach_body
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
@@ -180,6 +180,33 @@ def _write_depths(out: HandDepth, frames: Tensor, got: HandDepth) -> None:
     out.depth[frames], out.hand_point[frames], out.surface_point[frames] = got.depth, got.hand_point, got.surface_point
 
 
+def wrist_positions(motion: Motion, arms: list[Arm]) -> Tensor | None:
+    """``(F, 2, 3)`` the left and right wrists' world positions (None unless both arms are mapped)."""
+    if len(arms) != 2:
+        return None
+    hands = [a.hand for a in sorted(arms, key=lambda a: a.side)]
+    return motion.global_transforms()[1][:, hands].double()
+
+
+def grip_apart(inside: HandDepth, wrists: Tensor | None, deeper_than: float) -> HandDepth:
+    """``inside`` with each hand's way out of the other arm, where both hands are deeper than ``deeper_than`` in
+    each other's arm (interlocked fists: a grip), turned away from the other hand's wrist (``wrists (F, 2, 3)``):
+    the nearest exits of two interlocked fists point mostly the same way, so the hands would move together and
+    not apart (docs/contacts.md, "Two-hand grips")."""
+    other = hand_tests(0).index("right_arm")  # the other arm's column, the same for both hands
+    if wrists is None:
+        return inside
+    grip = (inside.depth[:, :, other] > deeper_than).all(dim=1)  # (F,)
+    if not bool(grip.any()):
+        return inside
+    apart = wrists - wrists.flip(1)
+    apart = apart / apart.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    out = HandDepth(inside.depth.clone(), inside.hand_point.clone(), inside.surface_point.clone())
+    way = apart * inside.depth[:, :, other, None]
+    out.surface_point[grip, :, other] = inside.hand_point[grip, :, other] + way[grip]
+    return out
+
+
 def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
                  p: HandContactParams) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Wrist moves ``(F, 2, 3)`` (body scale) toward the parts the source touches and away from those it stays
@@ -278,8 +305,10 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     deep_before = int((inside.depth > p.out_m * rb.scale).any(dim=2).any(dim=1).sum())
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
+    moved_motion = motion
     for _ in range(p.passes):
-        want, weight = wanted_moves(src, state, inside, rb.scale, p)
+        apart = grip_apart(inside, wrist_positions(moved_motion, arms), p.out_m * rb.scale)
+        want, weight = wanted_moves(src, state, apart, rb.scale, p)
         if float(want.abs().max()) == 0.0:
             break
         step = smooth_moves(want, weight, p.smooth_seconds * motion.fps)

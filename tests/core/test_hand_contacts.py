@@ -274,3 +274,20 @@ def test_a_put_back_contact_may_cost_a_few_millimetres_of_arm_depth(skinny, monk
     strict = hand_contacts.run(ctx, target, hand_contacts.HandContactParams(trade_depth_m=0.002))
     assert (_judged(ch, mapping, strict.motion, middle)[:, LEFT, legs] > 0.025).all()
     assert strict.report["withdrawn_frames"] > traded.report["withdrawn_frames"]
+
+
+def test_interlocked_fists_are_moved_apart_and_a_hand_in_the_other_arm_alone_as_before() -> None:
+    """Both hands deeper than the bound in each other's arm (a grip): each one's way out of the other arm points
+    away from the other wrist, as long as its depth; one hand in the other arm alone keeps its nearest exit."""
+    inside = HandDepth.empty(2)
+    other = 2
+    inside.depth[:, :, other] = torch.tensor([[0.02, 0.01], [0.02, 0.0]], dtype=torch.float64)
+    inside.hand_point[:, :, other] = 0.0
+    inside.surface_point[:, :, other] = torch.tensor([0.0, -0.02, 0.0], dtype=torch.float64)  # both exits: down
+    wrists = torch.tensor([[[0.0, 0.0, 0.1], [0.0, 0.0, 0.0]]] * 2, dtype=torch.float64)  # left 10 cm along +z
+    apart = hand_contacts.grip_apart(inside, wrists, 0.005)
+    ways = apart.surface_point - apart.hand_point
+    assert torch.allclose(ways[0, 0, other], torch.tensor([0.0, 0.0, 0.02], dtype=torch.float64))
+    assert torch.allclose(ways[0, 1, other], torch.tensor([0.0, 0.0, -0.01], dtype=torch.float64))
+    assert torch.equal(ways[1, :, other], (inside.surface_point - inside.hand_point)[1, :, other])  # not a grip
+    assert hand_contacts.grip_apart(inside, None, 0.005) is inside  # one arm mapped: nothing to pair
