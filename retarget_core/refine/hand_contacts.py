@@ -193,9 +193,9 @@ def grip_apart(inside: HandDepth, wrists: Tensor | None, deeper_than: float) -> 
     each other's arm (interlocked fists: a grip), turned away from the other hand's wrist (``wrists (F, 2, 3)``):
     the nearest exits of two interlocked fists point mostly the same way, so the hands would move together and
     not apart (docs/contacts.md, "Two-hand grips")."""
-    other = hand_tests(0).index("right_arm")  # the other arm's column, the same for both hands
     if wrists is None:
         return inside
+    other = hand_tests(0).index("right_arm")  # the other arm's column, the same for both hands
     grip = (inside.depth[:, :, other] > deeper_than).all(dim=1)  # (F,)
     if not bool(grip.any()):
         return inside
@@ -250,7 +250,8 @@ def contact_figures(src: Tensor, state: HandState, scale: float, p: HandContactP
     d = state.distance / scale
     touch, far = src < p.contact_m, src > p.far_m
     n_t, n_f = int(touch.sum()), int(far.sum())
-    return {"source_contacts": n_t, "preservation": round(float((d[touch] < KEPT_M).double().mean()), 4) if n_t else None,
+    kept = int(kept_contacts(src, state, scale, p).sum())
+    return {"source_contacts": n_t, "preservation": round(kept / n_t, 4) if n_t else None,
             "false_contacts": round(float((d[far] < FALSE_M).double().mean()), 4) if n_f else None}  # fmt: skip
 
 
@@ -365,8 +366,9 @@ def kept_contacts(src: Tensor, state: HandState, scale: float, p: HandContactPar
 
 def contact_trade(gained: Tensor, arm_depth: Tensor, p: HandContactParams) -> Tensor:
     """``(n,)`` frames whose deeper arms the never-worse check accepts: their whole move keeps more source contacts
-    than the input (``gained (n,)``; fixed, so a partly withdrawn move keeps its excuse) and the arms' deepest point ``arm_depth (n,)`` (at 1.80 m) stays within
-    ``trade_depth_m``, short of what the judge counts as a frame deeper than 1 cm. A hand on a short-armed
+    than the input (``gained (n,)``; fixed, so a partly withdrawn move keeps its excuse) and the arms' deepest
+    point ``arm_depth (n,)`` (at 1.80 m) stays within ``trade_depth_m``, short of what the judge counts as a frame
+    deeper than 1 cm. A hand on a short-armed
     character's thigh or belly brings its forearm into the body; a hand that touches where the source touches is
     worth a few millimetres of forearm in a soft part (docs/contacts.md)."""
     return gained & (arm_depth <= p.trade_depth_m)
