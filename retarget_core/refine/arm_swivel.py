@@ -10,19 +10,22 @@ them outside), and the posed-mesh lever it has costs end-effector error (docs/co
 1. Measure, per frame and arm, the deepest of its sampled vertices (not its hand's) inside a part the judge tests
    it against, and of the legs' vertices inside it, on the judge's closed parts
    (:func:`retarget_core.contacts.arm_depth.arm_penetration`).
-2. Search: where an arm is deeper than ``search_m``, each turn of ``turns_deg`` is posed and measured the same
-   way; the shallowest wins (no turn on ties, then the smaller turn). A search, not a gradient step: a local
-   (plane) model of the depth, tried first, got a third of the gain, since a deep elbow often has to swing
-   30 to 70 degrees round the chest to come out.
-3. Smooth in time (:func:`retarget_core.refine.temporal.weighted_smooth`: weight 1 where the arm is in the
-   body, ``free_weight`` elsewhere, toward no turn), then the never-worse check on the judge's parts
-   (:func:`retarget_core.refine.judged_check.never_worse_weights`): a frame whose judged arm penetration grew is
-   withdrawn smoothly.
+2. Search: where an arm is deeper than ``search_m``, and ``margin_seconds`` around such frames, each turn of
+   ``turns_deg`` is posed and measured the same way. A search, not a gradient step: a local (plane) model of
+   the depth, tried first, got a third of the gain, since a deep elbow often has to swing 30 to 70 degrees
+   round the chest to come out.
+3. Choose a path in time: per arm, the sequence of measured turns with the least summed depth plus a cost on
+   each change between frames (``step_cost_m``; dynamic programming, :func:`least_cost_path`), lightly
+   smoothed. Every frame's turn is one that was measured, so the never-worse check finds few frames worse;
+   the best turn per frame, smoothed in time, put unmeasured turns between measured ones, and the withdrawals
+   of those spread over the span (docs/collisions.md).
+4. The never-worse check on the judge's parts (:func:`retarget_core.refine.judged_check.never_worse_weights`):
+   a frame whose judged arm penetration grew is withdrawn smoothly.
 
 Lengths at a 1.80 m character (scaled to the body). Computes on the CPU, a chunk of frames at a time: the turns
 of a chunk's frames are measured on its parts, posing and refitting again only what a turn moves
-(:class:`retarget_core.contacts.hand_reach.MovedParts`), and the never-worse check's "before" is read in the same
-pass (all equal to measuring each turn afresh).
+(:class:`retarget_core.contacts.hand_reach.MovedParts`; equal to measuring each turn afresh), and the never-worse
+check's "before" is read with the unturned depths.
 """
 
 from __future__ import annotations
@@ -49,9 +52,10 @@ from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of, swivel_arms
 from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, ArmFigures, never_worse_weights
-from retarget_core.refine.temporal import weighted_smooth
+from retarget_core.refine.temporal import least_cost_path, weighted_smooth
 
 DEEP_M = 0.01  # ACCEPTANCE.md: frames > 1 cm (what the report counts)
+SMALLER_TURN_M = 1e-4  # a turn costs this depth per radian: of two turns about as deep, the smaller wins
 
 
 @dataclass(frozen=True)
@@ -61,18 +65,20 @@ class SwivelParams:
     search_m: float = 0.005  # frames where an arm is deeper than this are searched for a turn
     turns_deg: tuple[float, ...] = (-10.0, 10.0, -20.0, 20.0, -35.0, 35.0, -50.0, 50.0, -70.0, 70.0)  # tried, smaller
     # first; without the 10 and 35 degree steps, 005_12 x heldout_tall read 43 % frames > 1 cm, not 15 (the chain's 30)
-    smooth_seconds: float = 0.1  # the turns' smoothing in time (a Gaussian's standard deviation)
-    free_weight: float = 0.1  # a frame whose arm is not in the body: weakly toward no turn
+    margin_seconds: float = 0.2  # turns are also measured this long around the searched frames: the path eases in
+    step_cost_m: float = 0.02  # a change of turn between frames (at 30 fps) costs this much depth per rad^2
+    smooth_seconds: float = 1.0 / 30.0  # the chosen turns' smoothing in time (a Gaussian's standard deviation)
     chunk: int = 64  # frames posed together, at most (fewer on a body whose part trees would not fit: ReachBody)
 
 
 @dataclass
-class ArmFrames:
-    """Per frame and arm ``(F, 2)``: the wanted turn (radians), the smoothing weight, and whether a sampled arm
-    point is in the body (``inside``) or deeper than 1 cm (``deep``)."""
+class TurnTable:
+    """Per frame and arm the deepest sampled arm point (body scale) at each turn of ``levels (K,)`` radians (no
+    turn first): ``depth (F, 2, K)``, inf where a turn was not measured; ``inside`` and ``deep`` ``(F, 2)``:
+    whether the arm, unturned, is in the body or deeper than 1 cm."""
 
-    wanted: Tensor
-    weight: Tensor
+    levels: Tensor
+    depth: Tensor
     inside: Tensor
     deep: Tensor
 
@@ -97,59 +103,90 @@ def repeated(motion: Motion, frames: Tensor, times: int) -> Motion:
     return Motion(motion.skeleton, motion.fps, motion.rotations[idx], motion.translations[idx], motion.name)
 
 
-def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm],
-                  p: SwivelParams) -> tuple[ArmFrames, ArmFigures]:  # fmt: skip
-    """:class:`ArmFrames` of ``motion``: each arm's depth on every frame, and on the frames where it is deeper
-    than ``search_m`` the turn of ``turns_deg`` that makes it shallowest (no turn, then the smaller, on ties); and
-    both arms' :class:`ArmFigures` on every frame (the never-worse check's "before", read on the same parts).
-    A chunk of frames at a time: its turns are measured on the parts of its frames (:func:`best_turns`)."""
+def measure_unturned(ctx: RefineContext, rb: ReachBody, motion: Motion, chunk: int) -> tuple[Tensor, ArmFigures]:
+    """``(F, 2)`` each arm's deepest sampled point without its hand, and both arms' :class:`ArmFigures` (the
+    never-worse check's "before"), on every frame of ``motion``."""
     f_n = motion.num_frames
-    out = ArmFrames(torch.zeros(f_n, 2, dtype=torch.float64), torch.full((f_n, 2), p.free_weight, dtype=torch.float64),
-                    torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+    depth = torch.zeros(f_n, 2, dtype=torch.float64)
     figures = ArmFigures.zeros(f_n)
-    turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
     cap = ARM_DEPTH_CAP_M * rb.scale
-    chunk = rb.chunk_frames(p.chunk)
     for s in range(0, f_n, chunk):
         rows = slice(s, min(s + chunk, f_n))
+        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, torch.arange(f_n)[rows]))
+        for side in range(2):  # both, as arm_check reads them
+            with_hand, depth[rows, side] = arm_penetration_and_depth(pp, side, cap)
+            figures.add(rows, *with_hand)
+    return depth, figures
+
+
+def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm],
+                  p: SwivelParams) -> tuple[TurnTable, ArmFigures]:  # fmt: skip
+    """:class:`TurnTable` of ``motion``: every turn of ``turns_deg`` measured where an arm is deeper than
+    ``search_m`` and within ``margin_seconds`` of such a frame; and both arms' :class:`ArmFigures` on every frame.
+    A chunk of frames at a time: its turns are measured on the parts of its frames (:func:`turn_depths`)."""
+    f_n = motion.num_frames
+    chunk = rb.chunk_frames(p.chunk)
+    unturned, figures = measure_unturned(ctx, rb, motion, chunk)
+    turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
+    table = TurnTable(torch.cat([turns.new_zeros(1), turns]), torch.full((f_n, 2, len(turns) + 1), math.inf,
+                      dtype=torch.float64), unturned > 0, unturned > DEEP_M * rb.scale)  # fmt: skip
+    table.depth[:, :, 0] = unturned
+    search = dilated(unturned > p.search_m * rb.scale, round(p.margin_seconds * motion.fps))
+    for s in range(0, f_n, chunk):
+        rows = slice(s, min(s + chunk, f_n))
+        if not bool(search[rows].any()):
+            continue
         frames = torch.arange(f_n)[rows]
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames))
-        depths = torch.zeros(len(frames), 2, dtype=torch.float64)
-        for side in range(2):  # both, as arm_check reads them
-            with_hand, depths[:, side] = arm_penetration_and_depth(pp, side, cap)
-            figures.add(rows, *with_hand)
         for arm in arms:
-            depth = depths[:, arm.side]
-            out.inside[rows, arm.side], out.deep[rows, arm.side] = depth > 0, depth > DEEP_M * rb.scale
-            out.weight[frames[depth > 0], arm.side] = 1.0
-            search = torch.nonzero(depth > p.search_m * rb.scale).flatten()
-            if len(search):
-                out.wanted[frames[search], arm.side] = best_turns(ctx, rb, motion, arms, arm, pp, frames, search,
-                                                                  depth, turns, chunk)  # fmt: skip
-    return out, figures
+            at = torch.nonzero(search[rows, arm.side]).flatten()
+            if len(at):
+                table.depth[frames[at], arm.side, 1:] = turn_depths(ctx, rb, motion, arms, arm, pp, frames, at, turns,
+                                                                    chunk).T  # fmt: skip
+    return table, figures
 
 
-def best_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
-               frames: Tensor, search: Tensor, depth: Tensor, turns: Tensor, chunk: int) -> Tensor:  # fmt: skip
-    """``(m,)`` the turn of ``turns (T,)`` (or 0) that makes ``arm`` shallowest at rows ``search (m,)`` of the
-    chunk of clip ``frames (n,)`` whose parts are ``pp`` and the arm's depths ``depth (n,)``. The turns are
-    measured about ``chunk`` frames at a time, their parts made from the chunk's where the turn left them (the
-    legs, most of the torso, head and other arm)."""
-    m = len(search)
-    base = pp.frames(search)
+def dilated(mask: Tensor, frames: int) -> Tensor:
+    """``(F, C)`` bool: ``mask (F, C)`` grown by ``frames`` frames either way in time."""
+    if frames <= 0:
+        return mask.clone()
+    grown = torch.nn.functional.max_pool1d(mask.T.double()[None], 2 * frames + 1, stride=1, padding=frames)
+    return grown[0].T > 0
+
+
+def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
+                frames: Tensor, at: Tensor, turns: Tensor, chunk: int) -> Tensor:  # fmt: skip
+    """``(T, m)`` ``arm``'s deepest sampled point (without its hand) at each of ``turns (T,)`` on rows ``at (m,)``
+    of the chunk of clip ``frames (n,)`` whose parts are ``pp``. The turns are measured about ``chunk`` frames at
+    a time, their parts made from the chunk's where the turn left them (the legs, most of the torso, head and
+    other arm)."""
+    m = len(at)
+    base = pp.frames(at)
     angles = torch.zeros(len(turns) * m, 2, dtype=torch.float64)
     angles[:, arm.side] = turns.repeat_interleave(m)
-    many = swivel_arms(repeated(motion, frames[search], len(turns)), arms, angles)
-    poses = posed_moved(rb, ctx.target, many, motion, frames[search], base.posed)
+    many = swivel_arms(repeated(motion, frames[at], len(turns)), arms, angles)
+    poses = posed_moved(rb, ctx.target, many, motion, frames[at], base.posed)
     cap = ARM_DEPTH_CAP_M * rb.scale
-    tried = [depth[search][None]]  # no turn first: kept unless a turn is shallower
+    tried = []
     group = max(1, chunk // m)  # turns measured together
     for first in range(0, len(turns), group):
         count = min(group, len(turns) - first)
         parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
         tried.append(arm_penetration(parts, arm.side, cap, with_hand=False)[1].view(count, m))
-    best = torch.cat(tried).argmin(dim=0)
-    return torch.cat([turns.new_zeros(1), turns])[best]
+    return torch.cat(tried)
+
+
+def coherent_turns(table: TurnTable, arms: list[Arm], p: SwivelParams, fps: float, scale: float) -> Tensor:
+    """``(F, 2)`` radians: per arm the sequence of measured turns with the least summed depth (at 1.80 m, ``scale``
+    turns body lengths into it) plus ``step_cost_m`` per squared change between frames (per second squared,
+    so at any rate), smaller turns slightly preferred; then smoothed by ``smooth_seconds``."""
+    out = torch.zeros(table.depth.shape[0], 2, dtype=torch.float64)
+    step = p.step_cost_m * (fps / 30.0) ** 2
+    for arm in arms:
+        cost = table.depth[:, arm.side] * scale + SMALLER_TURN_M * table.levels.abs()[None]
+        out[:, arm.side] = table.levels[least_cost_path(cost, table.levels, step)]
+    ones = torch.ones(out.shape[0], dtype=torch.float64)
+    return weighted_smooth(out, ones, p.smooth_seconds * fps)
 
 
 @computes_on_cpu
@@ -161,9 +198,8 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
     if not arms or motion.num_frames == 0:
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm", "seconds": 0.0})
     rb = reach_body(ctx.target, ctx.target_mapping)
-    first, figures = measure_turns(ctx, rb, motion, arms, p)
-    turned = torch.stack([weighted_smooth(first.wanted[:, s : s + 1], first.weight[:, s], p.smooth_seconds * motion.fps)[:, 0]
-                          for s in range(2)], dim=1)  # fmt: skip
+    table, figures = measure_turns(ctx, rb, motion, arms, p)
+    turned = coherent_turns(table, arms, p, motion.fps, 1.0 / rb.scale)
     f_n = motion.num_frames
     changed = torch.nonzero(turned.abs().amax(dim=1) > 1e-4).flatten()
     share = torch.ones(f_n, dtype=torch.float64)
@@ -172,10 +208,10 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
         share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed,
                                     before=before)  # fmt: skip
     out = swivel_arms(motion, arms, turned * share[:, None])
-    return StageOutcome(out, _report(first, turned, share, changed, t0))
+    return StageOutcome(out, _report(table, turned, share, changed, t0))
 
 
-def _report(first: ArmFrames, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
+def _report(first: TurnTable, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
     """The stage's figures: frames changed and withdrawn, the turns, and the input's frames with an arm in the
     body (sampled points, as the judge's parts read them)."""
     kept = (turned * share[:, None]).abs()

@@ -87,5 +87,23 @@ def weighted_smooth(wanted: Tensor, weight: Tensor, sigma: float) -> Tensor:
     return (num[:, 0, :] / den[0].clamp_min(1e-12)).T.to(wanted.dtype)
 
 
-__all__ = ["bspline_basis", "close_caps", "cubic_bspline", "fallback_weights", "knot_count", "smoothstep",
-           "weighted_smooth"]
+def least_cost_path(cost: Tensor, levels: Tensor, step_cost: float) -> Tensor:
+    """``(F,)`` indices into ``levels (K,)``, one per frame, minimising the summed ``cost (F, K)`` of the chosen
+    levels plus ``step_cost * (level change)^2`` between consecutive frames (dynamic programming, exact); an
+    infinite cost forbids a level on that frame."""
+    f_n = cost.shape[0]
+    step = step_cost * (levels[:, None] - levels[None, :]) ** 2  # (from, to)
+    total = cost[0].clone()
+    back = torch.zeros(f_n, len(levels), dtype=torch.long)
+    for f in range(1, f_n):
+        total, back[f] = (total[:, None] + step).min(dim=0)
+        total = total + cost[f]
+    path = torch.zeros(f_n, dtype=torch.long)
+    path[-1] = total.argmin()
+    for f in range(f_n - 1, 0, -1):
+        path[f - 1] = back[f, path[f]]
+    return path
+
+
+__all__ = ["bspline_basis", "close_caps", "cubic_bspline", "fallback_weights", "knot_count", "least_cost_path",
+           "smoothstep", "weighted_smooth"]
