@@ -5,6 +5,7 @@ were and the other arm untouched; the swivel itself turns the elbow about the sh
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -20,9 +21,9 @@ from retarget_core.metrics.acceptance import measure_pose
 from retarget_core.metrics.acceptance_body import PARTS, acceptance_body
 from retarget_core.motion import Motion
 from retarget_core.refine import arm_swivel
-from retarget_core.refine.arms import about_axis, arms_of, swivel_arms
+from retarget_core.refine.arms import Arm, about_axis, arms_of, swivel_arms
 from retarget_core.refine.hand_contacts import apply_moves
-from retarget_core.refine.temporal import smoothstep
+from retarget_core.refine.temporal import least_cost_path, smoothstep
 from tests.core.test_hand_contacts import FRAMES, LEFT, _context, _rest
 
 TURN_IN_DEG = -30.0  # on the skinny sample this swings the left elbow about 4 cm into the torso
@@ -95,3 +96,36 @@ def test_the_swivel_turns_the_elbow_about_the_shoulder_wrist_line(skinny) -> Non
     assert float((after[:, c] - before[:, c]).norm(dim=-1).max()) < 1e-5
     untouched = swivel_arms(motion, arms, torch.zeros(FRAMES, 2, dtype=torch.float64))
     assert torch.equal(untouched.rotations, motion.rotations)
+
+
+def test_the_least_cost_path_is_the_best_of_all_paths() -> None:
+    gen = torch.Generator().manual_seed(3)
+    cost = torch.rand(5, 3, generator=gen, dtype=torch.float64)
+    cost[2, 1] = math.inf  # a level not measured on a frame is never chosen there
+    levels = torch.tensor([0.0, -0.5, 0.6], dtype=torch.float64)
+
+    def total(path: tuple[int, ...]) -> float:
+        steps = sum(0.3 * float(levels[a] - levels[b]) ** 2 for a, b in zip(path, path[1:], strict=False))
+        return sum(float(cost[f, k]) for f, k in enumerate(path)) + steps
+
+    best = min(itertools.product(range(3), repeat=5), key=total)
+    assert tuple(least_cost_path(cost, levels, 0.3).tolist()) == best
+
+
+def test_the_swivel_keeps_one_way_round_rather_than_flip_for_a_millimetre() -> None:
+    """An elbow 2 cm in the body on frames 5..24: turned 35 degrees one way it is 2 mm deep; the other way is 1 mm
+    better on one frame only. The path turns one way over the span and eases back, never flipping."""
+    f_n, turn = 30, math.radians(35.0)
+    depth = torch.full((f_n, 2, 3), math.inf, dtype=torch.float64)
+    depth[:, :, 0] = 0.0
+    depth[5:25, :, 0] = 0.02
+    depth[2:28, :, 1:] = 0.003
+    depth[5:25, :, 2] = 0.002
+    depth[15, :, 1] = 0.001
+    levels = torch.tensor([0.0, -turn, turn], dtype=torch.float64)
+    table = arm_swivel.TurnTable(levels, depth, depth[:, :, 0] > 0, depth[:, :, 0] > 0.01)
+    arm = Arm(upper=1, fore=2, hand=3, side=0, followers=())
+    p = arm_swivel.SwivelParams(smooth_seconds=0.0)
+    turned = arm_swivel.coherent_turns(table, [arm], p, 30.0, 1.0)[:, arm.side]
+    assert torch.allclose(turned[5:25], torch.full((20,), turn, dtype=torch.float64))
+    assert float(turned.min()) >= 0.0 and float(turned[:2].abs().max()) == 0.0 and float(turned[28:].abs().max()) == 0.0
