@@ -11,9 +11,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.contacts.hand_reach import PosedParts
-from retarget_core.geometry.closest_point import closest_points
 from retarget_core.geometry.triangle_bvh import PosedBoxes, closest_triangles, winding_numbers
-from retarget_core.metrics.acceptance import CAP_TIE_M
 from retarget_core.metrics.acceptance_body import HANDS, LIMB_TESTS
 
 EMPTY = torch.zeros(0, dtype=torch.long)
@@ -76,40 +74,8 @@ def _tests(pp: PosedParts, side: int, arm_n: int) -> list[tuple]:
 def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
     """The vertices ``pts (K,)`` inside part ``name`` on the chunk's frames: frame and index into ``pts`` ``(N,)``
     and depth ``(N,)`` (at most ``max_depth``)."""
-    f, k, d, face, _ = points_inside(pp, pts, name, max_depth)
-    counted = ~through_cap(pp, name, f, face, pp.posed[f, pts[k]])  # the judge does not count these
-    f, k, d = f[counted], k[counted], d[counted]
+    f, k, d, _, _ = points_inside(pp, pts, name, max_depth)
     return f, k, torch.nan_to_num(d, posinf=max_depth).clamp_max(max_depth)
-
-
-def through_cap(pp: PosedParts, name: str, f: Tensor, face: Tensor, p: Tensor) -> Tensor:
-    """``(N,)`` the points ``p (N, 3)`` (chunk frames ``f (N,)``) whose nearest triangle of part ``name``, ``face
-    (N,)`` (-1: none within the search), is a cap fan and whose closest point is off the cap's rim: they entered
-    the part through its cap, which the judge does not count (ACCEPTANCE.md;
-    :func:`retarget_core.metrics.acceptance._through_cap`)."""
-    closed = pp.rb.body.part(name)
-    cap = torch.zeros(len(face), dtype=torch.bool)
-    if closed is None or not closed.cap_loops:
-        return cap
-    found = face >= 0
-    cap[found] = torch.from_numpy(closed.is_cap)[face[found]]
-    rows = torch.nonzero(cap).flatten()
-    if len(rows) == 0:
-        return cap
-    tri = torch.from_numpy(closed.faces)[face[rows]]  # cap fans are (loop vertex, loop vertex, centre)
-    own = torch.from_numpy(closed.vertices)
-    a, b = pp.posed[f[rows], own[tri[:, 0]]], pp.posed[f[rows], own[tri[:, 1]]]
-    centre = torch.zeros_like(a)
-    for c in torch.unique(tri[:, 2]).tolist():
-        on = tri[:, 2] == c
-        loop = torch.from_numpy(closed.cap_loops[c - len(own)])
-        centre[on] = pp.posed[f[rows[on]]][:, loop].mean(dim=1)
-    closest = closest_points(p[rows], a, b, centre)
-    ab = b - a
-    t = (((closest - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-30)).clamp(0.0, 1.0)
-    on_rim = (a + ab * t[:, None] - closest).norm(dim=-1) <= CAP_TIE_M
-    cap[rows[on_rim]] = False
-    return cap
 
 
 def points_inside(pp: PosedParts, pts: Tensor, name: str,
@@ -133,4 +99,4 @@ def points_inside(pp: PosedParts, pts: Tensor, name: str,
     return f, k, d, face, boxes
 
 
-__all__ = ["arm_penetration", "arm_penetration_and_depth", "points_inside", "through_cap"]
+__all__ = ["arm_penetration", "arm_penetration_and_depth", "points_inside"]
