@@ -211,13 +211,13 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
     return StageOutcome(out, _report(table, turned, share, changed, t0))
 
 
-def _report(first: TurnTable, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
+def _report(table: TurnTable, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
     """The stage's figures: frames changed and withdrawn, the turns, and the input's frames with an arm in the
     body (sampled points, as the judge's parts read them)."""
     kept = (turned * share[:, None]).abs()
     return {"frames_changed": len(changed), "withdrawn_frames": int((share[changed] < 1.0).sum()),
             "max_turn_deg": round(math.degrees(float(kept.max())) if kept.numel() else 0.0, 1),
             "mean_turn_deg": round(math.degrees(float(kept[changed].mean())) if len(changed) else 0.0, 2),
-            "frames_arm_inside_before": int(first.inside.any(dim=1).sum()),
-            "frames_arm_deeper_1cm_before": int(first.deep.any(dim=1).sum()),
+            "frames_arm_inside_before": int(table.inside.any(dim=1).sum()),
+            "frames_arm_deeper_1cm_before": int(table.deep.any(dim=1).sum()),
             "seconds": round(time.perf_counter() - t0, 3)}  # fmt: skip
