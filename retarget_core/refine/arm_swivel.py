@@ -103,47 +103,47 @@ def repeated(motion: Motion, frames: Tensor, times: int) -> Motion:
     return Motion(motion.skeleton, motion.fps, motion.rotations[idx], motion.translations[idx], motion.name)
 
 
-def measure_unturned(ctx: RefineContext, rb: ReachBody, motion: Motion, chunk: int) -> tuple[Tensor, ArmFigures]:
-    """``(F, 2)`` each arm's deepest sampled point without its hand, and both arms' :class:`ArmFigures` (the
-    never-worse check's "before"), on every frame of ``motion``."""
-    f_n = motion.num_frames
-    depth = torch.zeros(f_n, 2, dtype=torch.float64)
-    figures = ArmFigures.zeros(f_n)
-    cap = ARM_DEPTH_CAP_M * rb.scale
-    for s in range(0, f_n, chunk):
-        rows = slice(s, min(s + chunk, f_n))
-        pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, torch.arange(f_n)[rows]))
-        for side in range(2):  # both, as arm_check reads them
-            with_hand, depth[rows, side] = arm_penetration_and_depth(pp, side, cap)
-            figures.add(rows, *with_hand)
-    return depth, figures
-
-
 def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm],
                   p: SwivelParams) -> tuple[TurnTable, ArmFigures]:  # fmt: skip
     """:class:`TurnTable` of ``motion``: every turn of ``turns_deg`` measured where an arm is deeper than
-    ``search_m`` and within ``margin_seconds`` of such a frame; and both arms' :class:`ArmFigures` on every frame.
-    A chunk of frames at a time: its turns are measured on the parts of its frames (:func:`turn_depths`)."""
+    ``search_m`` and within ``margin_seconds`` of such a frame; and both arms' :class:`ArmFigures` on every frame
+    (the never-worse check's "before"). A chunk of frames at a time, each posed once: its unturned depths are read
+    at once, its turns (:func:`turn_depths`) as soon as the chunks after it reach past its margin, so a chunk's
+    parts are kept only that long."""
     f_n = motion.num_frames
-    chunk = rb.chunk_frames(p.chunk)
-    unturned, figures = measure_unturned(ctx, rb, motion, chunk)
+    chunk, margin = rb.chunk_frames(p.chunk), round(p.margin_seconds * motion.fps)
     turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
     table = TurnTable(torch.cat([turns.new_zeros(1), turns]), torch.full((f_n, 2, len(turns) + 1), math.inf,
-                      dtype=torch.float64), unturned > 0, unturned > DEEP_M * rb.scale)  # fmt: skip
-    table.depth[:, :, 0] = unturned
-    search = dilated(unturned > p.search_m * rb.scale, round(p.margin_seconds * motion.fps))
+                      dtype=torch.float64), torch.zeros(f_n, 2, dtype=torch.bool),
+                      torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+    figures = ArmFigures.zeros(f_n)
+    pending: list[tuple[Tensor, PosedParts]] = []  # chunks whose turns wait for the depths past their margin
     for s in range(0, f_n, chunk):
-        rows = slice(s, min(s + chunk, f_n))
-        if not bool(search[rows].any()):
-            continue
-        frames = torch.arange(f_n)[rows]
+        frames = torch.arange(s, min(s + chunk, f_n))
         pp = PosedParts(rb, posed_for_reach(rb, ctx.target, motion, frames))
-        for arm in arms:
-            at = torch.nonzero(search[rows, arm.side]).flatten()
-            if len(at):
-                table.depth[frames[at], arm.side, 1:] = turn_depths(ctx, rb, motion, arms, arm, pp, frames, at, turns,
-                                                                    chunk).T  # fmt: skip
+        _measure_unturned(rb, pp, frames, table, figures)
+        pending.append((frames, pp))
+        read_to = int(frames[-1]) + 1
+        search = dilated(table.depth[:, :, 0] > p.search_m * rb.scale, margin)
+        while pending and (int(pending[0][0][-1]) + 1 + margin <= read_to or read_to == f_n):
+            done, parts = pending.pop(0)
+            for arm in arms:
+                at = torch.nonzero(search[done, arm.side]).flatten()
+                if len(at):
+                    table.depth[done[at], arm.side, 1:] = turn_depths(ctx, rb, motion, arms, arm, parts, done, at,
+                                                                      turns, chunk).T  # fmt: skip
     return table, figures
+
+
+def _measure_unturned(rb: ReachBody, pp: PosedParts, frames: Tensor, table: TurnTable, figures: ArmFigures) -> None:
+    """Each arm's deepest sampled point without its hand (into ``table``: depth at no turn, inside, deep) and both
+    arms' :class:`ArmFigures` at clip ``frames (n,)``, whose parts are ``pp``."""
+    rows = slice(int(frames[0]), int(frames[-1]) + 1)
+    for side in range(2):  # both, as arm_check reads them
+        with_hand, depth = arm_penetration_and_depth(pp, side, ARM_DEPTH_CAP_M * rb.scale)
+        figures.add(rows, *with_hand)
+        table.depth[rows, side, 0] = depth
+        table.inside[rows, side], table.deep[rows, side] = depth > 0, depth > DEEP_M * rb.scale
 
 
 def dilated(mask: Tensor, frames: int) -> Tensor:
