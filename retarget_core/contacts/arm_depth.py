@@ -19,34 +19,37 @@ EMPTY = torch.zeros(0, dtype=torch.long)
 Hits = list[tuple[Tensor, Tensor, Tensor, Tensor, bool]]  # per test: frame, point, depth (N,), areas (K,), on the arm
 
 
-def arm_penetration(pp: PosedParts, side: int, max_depth: float,
-                    with_hand: bool = True) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
     """Per frame of the chunk ``(n,)``, the judge's penetration that arm ``side`` takes part in: its tested vertices
-    (``with_hand``: its hand's too) inside a part the judge tests it against, and the legs' sampled vertices
-    inside it. How many, the deepest, and their volume (each depth times its vertex's area; deeper than
-    ``max_depth``: counted at it)."""
-    arm_n = len(pp.rb.arm_points[side]) if with_hand else pp.rb.arm_cells[side]
-    return _figures(pp.posed.shape[0], _hits(pp, side, arm_n, max_depth))
+    (its hand's too) inside a part the judge tests it against, and the legs' sampled vertices inside it. How many,
+    the deepest, and their volume (each depth times its vertex's area; deeper than ``max_depth``: counted at it)."""
+    return _figures(pp.posed.shape[0], _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True))
+
+
+def arm_search_depth(pp: PosedParts, side: int, max_depth: float) -> Tensor:
+    """``(n,)`` per frame of the chunk, the deepest of arm ``side``'s own sampled vertices, without its hand's (a
+    swivel keeps the hand), inside a part the judge tests it against. The legs' vertices inside the arm are not
+    read: a leg in the arm is the arm in the leg, which is read, and the arm's tree need not be refit per turn."""
+    return _figures(pp.posed.shape[0], _hits(pp, side, pp.rb.arm_cells[side], max_depth, with_legs=False))[1]
 
 
 def arm_penetration_and_depth(pp: PosedParts, side: int,
                               max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:  # fmt: skip
-    """:func:`arm_penetration` with the hand, and ``(n,)`` the deepest without it (``with_hand=False``'s), from
-    one search: each point's depth does not depend on the points searched with it, so both are the same as
-    two calls."""
+    """:func:`arm_penetration` and :func:`arm_search_depth` from one search: each point's depth does not depend
+    on the points searched with it, so both are the same as two calls."""
     cells = pp.rb.arm_cells[side]
-    hits = _hits(pp, side, len(pp.rb.arm_points[side]), max_depth)
-    no_hand: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) if on_arm else (f, k, d, area, on_arm)
-                     for f, k, d, area, on_arm in hits]  # fmt: skip
+    hits = _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True)
+    arm_only: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) for f, k, d, area, on_arm in hits
+                      if on_arm]  # fmt: skip
     n = pp.posed.shape[0]
-    return _figures(n, hits), _figures(n, no_hand)[1]
+    return _figures(n, hits), _figures(n, arm_only)[1]
 
 
-def _hits(pp: PosedParts, side: int, arm_n: int, max_depth: float) -> Hits:
+def _hits(pp: PosedParts, side: int, arm_n: int, max_depth: float, with_legs: bool) -> Hits:
     """Per test of arm ``side`` (:func:`_tests`): the points inside, as :func:`_inside` gives them ``(f, k, d)``,
     their points' ``area (K,)``, and whether the points are the arm's (not a leg's)."""
     out = []
-    for pts, area, name, on_arm in _tests(pp, side, arm_n):
+    for pts, area, name, on_arm in _tests(pp, side, arm_n, with_legs):
         out.append((*_inside(pp, torch.from_numpy(pts), name, max_depth), area, on_arm))
     return out
 
@@ -62,13 +65,15 @@ def _figures(n: int, hits: Hits) -> tuple[Tensor, Tensor, Tensor]:
     return count, deepest, total
 
 
-def _tests(pp: PosedParts, side: int, arm_n: int) -> list[tuple]:
+def _tests(pp: PosedParts, side: int, arm_n: int, with_legs: bool) -> list[tuple]:
     """What arm ``side``'s penetration is read on: ``(points, areas, part, on_arm)``: the first ``arm_n`` of its
-    sampled points against each part the judge tests the arm against, and each leg's points against the arm."""
+    sampled points against each part the judge tests the arm against, and (``with_legs``) each leg's points
+    against the arm."""
     arm = f"{HANDS[side]}_arm"
     pts, area = pp.rb.arm_points[side][:arm_n], pp.rb.arm_area[side][:arm_n]
     tests = [(pts, area, name, True) for name in LIMB_TESTS[arm]]
-    return tests + [(p, a, arm, False) for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]
+    legs = [(p, a, arm, False) for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)] if with_legs else []
+    return tests + legs
 
 
 def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -99,4 +104,4 @@ def points_inside(pp: PosedParts, pts: Tensor, name: str,
     return f, k, d, face, boxes
 
 
-__all__ = ["arm_penetration", "arm_penetration_and_depth", "points_inside"]
+__all__ = ["arm_penetration", "arm_penetration_and_depth", "arm_search_depth", "points_inside"]

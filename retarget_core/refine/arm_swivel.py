@@ -8,8 +8,8 @@ contacts do not move. The collision stage cannot see most of these vertices insi
 them outside), and the posed-mesh lever it has costs end-effector error (docs/collisions.md).
 
 1. Measure, per frame and arm, the deepest of its sampled vertices (not its hand's) inside a part the judge tests
-   it against, and of the legs' vertices inside it, on the judge's closed parts
-   (:func:`retarget_core.contacts.arm_depth.arm_penetration`).
+   it against, on the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_search_depth`; the
+   legs' vertices inside the arm are left to the check: a leg in the arm is the arm in the leg).
 2. Search: where an arm is deeper than ``search_m``, and ``margin_seconds`` around such frames, each turn of
    ``turns_deg`` is posed and measured the same way. A search, not a gradient step: a local (plane) model of
    the depth, tried first, got a third of the gain, since a deep elbow often has to swing 30 to 70 degrees
@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from retarget_core.contacts.arm_depth import arm_penetration, arm_penetration_and_depth
+from retarget_core.contacts.arm_depth import arm_penetration_and_depth, arm_search_depth
 from retarget_core.contacts.hand_reach import (
     MovedParts,
     PosedParts,
@@ -85,14 +85,13 @@ class TurnTable:
 
 def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, sides: list[int],
                chunk: int) -> Tensor:  # fmt: skip
-    """``(n, 2)`` the deepest sampled point of each of arms ``sides``' judged penetration (arm_penetration,
-    without its hand's points: a swivel keeps the hand; 0 for the other side) at clip ``frames (n,)``."""
+    """``(n, 2)`` each of arms ``sides``' :func:`arm_search_depth` (0 for the other side) at clip ``frames (n,)``."""
     out = torch.zeros(len(frames), 2, dtype=torch.float64)
     s = 0
     for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
         pp = PosedParts(rb, posed)
         for side in sides:
-            out[s : s + len(fr), side] = arm_penetration(pp, side, ARM_DEPTH_CAP_M * rb.scale, with_hand=False)[1]
+            out[s : s + len(fr), side] = arm_search_depth(pp, side, ARM_DEPTH_CAP_M * rb.scale)
         s += len(fr)
     return out
 
@@ -172,7 +171,7 @@ def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Ar
     for first in range(0, len(turns), group):
         count = min(group, len(turns) - first)
         parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
-        tried.append(arm_penetration(parts, arm.side, cap, with_hand=False)[1].view(count, m))
+        tried.append(arm_search_depth(parts, arm.side, cap).view(count, m))
     return torch.cat(tried)
 
 

@@ -129,3 +129,34 @@ def test_the_swivel_keeps_one_way_round_rather_than_flip_for_a_millimetre() -> N
     turned = arm_swivel.coherent_turns(table, [arm], p, 30.0, 1.0)[:, arm.side]
     assert torch.allclose(turned[5:25], torch.full((20,), turn, dtype=torch.float64))
     assert float(turned.min()) >= 0.0 and float(turned[:2].abs().max()) == 0.0 and float(turned[28:].abs().max()) == 0.0
+
+
+def test_the_search_reads_the_arms_own_points_and_the_check_the_legs_in_it_too(skinny) -> None:  # type: ignore[no-untyped-def]
+    """A hand pressed 3 cm into its thigh: the judge's arm penetration (the never-worse check's) reads the
+    thigh's points inside the hand; the swivel's search depth reads only the arm's own points without the hand
+    (a swivel keeps the hand), the same from one search as alone."""
+    from retarget_core.contacts.arm_depth import (
+        _figures,
+        _hits,
+        arm_penetration,
+        arm_penetration_and_depth,
+        arm_search_depth,
+    )
+    from retarget_core.contacts.hand_reach import PosedParts, posed_for_reach, reach_body
+    from tests.core.test_hand_contacts import _hanging, _lifted, _placed
+
+    ch, mapping = skinny
+    rb = reach_body(ch, mapping)
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    pressed = _lifted(source, mapping, LEFT, torch.tensor([-side * 0.03, 0.0, 0.0], dtype=torch.float64))
+    frames = torch.arange(12, 28, 4)
+    pp = PosedParts(rb, posed_for_reach(rb, ch, pressed, frames))
+    cap = 0.08 * rb.scale
+    count, deepest, _ = arm_penetration(pp, LEFT, cap)
+    (_, deepest_both, _), search_both = arm_penetration_and_depth(pp, LEFT, cap)
+    search = arm_search_depth(pp, LEFT, cap)
+    own_count = _figures(len(frames), _hits(pp, LEFT, len(rb.arm_points[LEFT]), cap, with_legs=False))[0]
+    assert (deepest > 0.01).all() and (count > own_count).all()  # the hand in the thigh, the thigh in the hand
+    assert torch.equal(deepest, deepest_both) and torch.equal(search, search_both)
+    assert (search > 0).all() and (search <= deepest).all()  # the wrist's cells are in the thigh too
