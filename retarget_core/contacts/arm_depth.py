@@ -26,23 +26,26 @@ def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor
     return _figures(pp.posed.shape[0], _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True))
 
 
-def arm_search_depth(pp: PosedParts, side: int, max_depth: float) -> Tensor:
-    """``(n,)`` per frame of the chunk, the deepest of arm ``side``'s own sampled vertices, without its hand's (a
-    swivel keeps the hand), inside a part the judge tests it against. The legs' vertices inside the arm are not
-    read: a leg in the arm is the arm in the leg, which is read, and the arm's tree need not be refit per turn."""
-    return _figures(pp.posed.shape[0], _hits(pp, side, pp.rb.arm_cells[side], max_depth, with_legs=False))[1]
+def arm_search_figures(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor]:
+    """``(n,)`` twice, per frame of the chunk: the deepest of arm ``side``'s own sampled vertices, without its
+    hand's (a swivel keeps the hand), inside a part the judge tests it against, and their volume. The legs'
+    vertices inside the arm are not read: a leg in the arm is the arm in the leg, which is read, and the arm's
+    tree need not be refit per turn."""
+    _, deepest, volume = _figures(pp.posed.shape[0], _hits(pp, side, pp.rb.arm_cells[side], max_depth, False))
+    return deepest, volume
 
 
-def arm_penetration_and_depth(pp: PosedParts, side: int,
-                              max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:  # fmt: skip
-    """:func:`arm_penetration` and :func:`arm_search_depth` from one search: each point's depth does not depend
-    on the points searched with it, so both are the same as two calls."""
+def arm_penetration_and_search(pp: PosedParts, side: int,
+                               max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]:  # fmt: skip
+    """:func:`arm_penetration` and :func:`arm_search_figures` from one search: each point's depth does not
+    depend on the points searched with it, so both are the same as two calls."""
     cells = pp.rb.arm_cells[side]
     hits = _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True)
     arm_only: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) for f, k, d, area, on_arm in hits
                       if on_arm]  # fmt: skip
     n = pp.posed.shape[0]
-    return _figures(n, hits), _figures(n, arm_only)[1]
+    _, deepest, volume = _figures(n, arm_only)
+    return _figures(n, hits), (deepest, volume)
 
 
 def _hits(pp: PosedParts, side: int, arm_n: int, max_depth: float, with_legs: bool) -> Hits:
@@ -104,4 +107,4 @@ def points_inside(pp: PosedParts, pts: Tensor, name: str,
     return f, k, d, face, boxes
 
 
-__all__ = ["arm_penetration", "arm_penetration_and_depth", "arm_search_depth", "points_inside"]
+__all__ = ["arm_penetration", "arm_penetration_and_search", "arm_search_figures", "points_inside"]

@@ -8,7 +8,7 @@ contacts do not move. The collision stage cannot see most of these vertices insi
 them outside), and the posed-mesh lever it has costs end-effector error (docs/collisions.md).
 
 1. Measure, per frame and arm, the deepest of its sampled vertices (not its hand's) inside a part the judge tests
-   it against, on the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_search_depth`; the
+   it against, on the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_search_figures`; the
    legs' vertices inside the arm are left to the check: a leg in the arm is the arm in the leg).
 2. Search: where an arm is deeper than ``search_m``, and ``margin_seconds`` around such frames, each turn of
    ``turns_deg`` is posed and measured the same way. A search, not a gradient step: a local (plane) model of
@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from retarget_core.contacts.arm_depth import arm_penetration_and_depth, arm_search_depth
+from retarget_core.contacts.arm_depth import arm_penetration_and_search, arm_search_figures
 from retarget_core.contacts.hand_reach import (
     MovedParts,
     PosedParts,
@@ -51,6 +51,7 @@ from retarget_core.contacts.hand_reach import (
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.motion import Motion
 from retarget_core.refine.arms import Arm, arms_of, swivel_arms
+from retarget_core.refine.collision_params import CollisionParams
 from retarget_core.refine.judged_check import ARM_DEPTH_CAP_M, ArmFigures, never_worse_weights
 from retarget_core.refine.temporal import least_cost_path, weighted_smooth
 
@@ -66,7 +67,8 @@ class SwivelParams:
     turns_deg: tuple[float, ...] = (-10.0, 10.0, -20.0, 20.0, -35.0, 35.0, -50.0, 50.0, -70.0, 70.0)  # tried, smaller
     # first; without the 10 and 35 degree steps, 005_12 x heldout_tall read 43 % frames > 1 cm, not 15 (the chain's 30)
     margin_seconds: float = 0.2  # turns are also measured this long around the searched frames: the path eases in
-    step_cost_m: float = 0.02  # a change of turn between frames (at 30 fps) costs this much depth per rad^2
+    step_cost_m: float = 0.05  # a change of turn between frames (at 30 fps) costs this much depth per rad^2: at
+    # 0.02 the paths step more, and 005_18 x heldout_bulky read jerk 1.0995 against 1.070 (docs/collisions.md)
     smooth_seconds: float = 1.0 / 30.0  # the chosen turns' smoothing in time (a Gaussian's standard deviation)
     chunk: int = 64  # frames posed together, at most (fewer on a body whose part trees would not fit: ReachBody)
 
@@ -74,24 +76,34 @@ class SwivelParams:
 @dataclass
 class TurnTable:
     """Per frame and arm the deepest sampled arm point (body scale) at each turn of ``levels (K,)`` radians (no
-    turn first): ``depth (F, 2, K)``, inf where a turn was not measured; ``inside`` and ``deep`` ``(F, 2)``:
-    whether the arm, unturned, is in the body or deeper than 1 cm."""
+    turn first): ``depth (F, 2, K)``, inf where a turn was not measured, and the arm's points' ``volume (F, 2, K)``
+    (:func:`arm_search_figures`); ``inside`` and ``deep`` ``(F, 2)``: whether the arm, unturned, is in the body or
+    deeper than 1 cm."""
 
     levels: Tensor
     depth: Tensor
+    volume: Tensor
     inside: Tensor
     deep: Tensor
+
+    @classmethod
+    def unmeasured(cls, levels: Tensor, f_n: int) -> TurnTable:
+        """A table of ``f_n`` frames with nothing measured yet."""
+        shape = (f_n, 2, len(levels))
+        return cls(levels, torch.full(shape, math.inf, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64),
+                   torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
 
 
 def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, sides: list[int],
                chunk: int) -> Tensor:  # fmt: skip
-    """``(n, 2)`` each of arms ``sides``' :func:`arm_search_depth` (0 for the other side) at clip ``frames (n,)``."""
+    """``(n, 2)`` each of arms ``sides``' deepest point (:func:`arm_search_figures`; 0 for the other side) at clip
+    ``frames (n,)``."""
     out = torch.zeros(len(frames), 2, dtype=torch.float64)
     s = 0
     for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
         pp = PosedParts(rb, posed)
         for side in sides:
-            out[s : s + len(fr), side] = arm_search_depth(pp, side, ARM_DEPTH_CAP_M * rb.scale)
+            out[s : s + len(fr), side] = arm_search_figures(pp, side, ARM_DEPTH_CAP_M * rb.scale)[0]
         s += len(fr)
     return out
 
@@ -112,9 +124,7 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
     f_n = motion.num_frames
     chunk, margin = rb.chunk_frames(p.chunk), round(p.margin_seconds * motion.fps)
     turns = torch.deg2rad(torch.tensor(p.turns_deg, dtype=torch.float64))
-    table = TurnTable(torch.cat([turns.new_zeros(1), turns]), torch.full((f_n, 2, len(turns) + 1), math.inf,
-                      dtype=torch.float64), torch.zeros(f_n, 2, dtype=torch.bool),
-                      torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+    table = TurnTable.unmeasured(torch.cat([turns.new_zeros(1), turns]), f_n)
     figures = ArmFigures.zeros(f_n)
     pending: list[tuple[Tensor, PosedParts]] = []  # chunks whose turns wait for the depths past their margin
     for s in range(0, f_n, chunk):
@@ -129,19 +139,19 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
             for arm in arms:
                 at = torch.nonzero(search[done, arm.side]).flatten()
                 if len(at):
-                    table.depth[done[at], arm.side, 1:] = turn_depths(ctx, rb, motion, arms, arm, parts, done, at,
-                                                                      turns, chunk).T  # fmt: skip
+                    depth, volume = turn_depths(ctx, rb, motion, arms, arm, parts, done, at, turns, chunk)
+                    table.depth[done[at], arm.side, 1:], table.volume[done[at], arm.side, 1:] = depth.T, volume.T
     return table, figures
 
 
 def _measure_unturned(rb: ReachBody, pp: PosedParts, frames: Tensor, table: TurnTable, figures: ArmFigures) -> None:
-    """Each arm's deepest sampled point without its hand (into ``table``: depth at no turn, inside, deep) and both
+    """Each arm's :func:`arm_search_figures` (into ``table``: depth and volume at no turn, inside, deep) and both
     arms' :class:`ArmFigures` at clip ``frames (n,)``, whose parts are ``pp``."""
     rows = slice(int(frames[0]), int(frames[-1]) + 1)
     for side in range(2):  # both, as arm_check reads them
-        with_hand, depth = arm_penetration_and_depth(pp, side, ARM_DEPTH_CAP_M * rb.scale)
+        with_hand, (depth, volume) = arm_penetration_and_search(pp, side, ARM_DEPTH_CAP_M * rb.scale)
         figures.add(rows, *with_hand)
-        table.depth[rows, side, 0] = depth
+        table.depth[rows, side, 0], table.volume[rows, side, 0] = depth, volume
         table.inside[rows, side], table.deep[rows, side] = depth > 0, depth > DEEP_M * rb.scale
 
 
@@ -154,8 +164,8 @@ def dilated(mask: Tensor, frames: int) -> Tensor:
 
 
 def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
-                frames: Tensor, at: Tensor, turns: Tensor, chunk: int) -> Tensor:  # fmt: skip
-    """``(T, m)`` ``arm``'s deepest sampled point (without its hand) at each of ``turns (T,)`` on rows ``at (m,)``
+                frames: Tensor, at: Tensor, turns: Tensor, chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """``(T, m)`` twice: ``arm``'s :func:`arm_search_figures` at each of ``turns (T,)`` on rows ``at (m,)``
     of the chunk of clip ``frames (n,)`` whose parts are ``pp``. The turns are measured about ``chunk`` frames at
     a time, their parts made from the chunk's where the turn left them (the legs, most of the torso, head and
     other arm)."""
@@ -166,26 +176,70 @@ def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Ar
     many = swivel_arms(repeated(motion, frames[at], len(turns)), arms, angles)
     poses = posed_moved(rb, ctx.target, many, motion, frames[at], base.posed)
     cap = ARM_DEPTH_CAP_M * rb.scale
-    tried = []
+    depth, volume = [], []
     group = max(1, chunk // m)  # turns measured together
     for first in range(0, len(turns), group):
         count = min(group, len(turns) - first)
         parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
-        tried.append(arm_search_depth(parts, arm.side, cap).view(count, m))
-    return torch.cat(tried)
+        d, v = arm_search_figures(parts, arm.side, cap)
+        depth.append(d.view(count, m))
+        volume.append(v.view(count, m))
+    return torch.cat(depth), torch.cat(volume)
 
 
-def coherent_turns(table: TurnTable, arms: list[Arm], p: SwivelParams, fps: float, scale: float) -> Tensor:
-    """``(F, 2)`` radians: per arm the sequence of measured turns with the least summed depth (at 1.80 m, ``scale``
-    turns body lengths into it) plus ``step_cost_m`` per squared change between frames (per second squared,
-    so at any rate), smaller turns slightly preferred; then smoothed by ``smooth_seconds``."""
+def accepted_turns(table: TurnTable, before: ArmFigures, scale: float) -> Tensor:
+    """``(F, 2, K)`` bool: the measured turns the never-worse check would keep, as far as the arm's own points
+    tell (:func:`retarget_core.refine.collision_check.worse_frames` with the collision stage's limits): its
+    points' volume grown by no more than the frame's allowance (read on ``before``, both arms' :class:`ArmFigures`
+    unturned) and its deepest point not deeper than the frame's. ``scale`` turns body lengths into 1.80 m."""
+    limits = CollisionParams()
+    vol_before = before.volume.double()[:, None, None] * scale**3
+    grow = (table.volume - table.volume[:, :, :1]) * scale**3
+    kept = grow <= torch.clamp(limits.worse_volume_fraction * vol_before, min=limits.worse_volume_m3)
+    deeper = (table.depth - before.max_depth.double()[:, None, None]) * scale > limits.worse_depth_m
+    return kept & ~deeper & torch.isfinite(table.depth)
+
+
+def coherent_turns(table: TurnTable, accepted: Tensor, arms: list[Arm], p: SwivelParams, fps: float,
+                   scale: float) -> Tensor:  # fmt: skip
+    """``(F, 2)`` radians: per arm the sequence of ``accepted (F, 2, K)`` turns (no turn always is) with the least
+    summed depth (at 1.80 m, ``scale`` turns body lengths into it) plus ``step_cost_m`` per squared change between
+    frames (per second squared, so at any rate), smaller turns slightly preferred."""
     out = torch.zeros(table.depth.shape[0], 2, dtype=torch.float64)
     step = p.step_cost_m * (fps / 30.0) ** 2
+    allowed = accepted.clone()
+    allowed[:, :, 0] = True
     for arm in arms:
         cost = table.depth[:, arm.side] * scale + SMALLER_TURN_M * table.levels.abs()[None]
+        cost = torch.where(allowed[:, arm.side], cost, math.inf)
         out[:, arm.side] = table.levels[least_cost_path(cost, table.levels, step)]
-    ones = torch.ones(out.shape[0], dtype=torch.float64)
-    return weighted_smooth(out, ones, p.smooth_seconds * fps)
+    return out
+
+
+def checked_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], path: Tensor,
+                  figures: ArmFigures, p: SwivelParams) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """``(F, 2)`` the turns kept, and ``(F,)`` twice, the share of the smoothing kept and of the turn kept. The
+    ``path (F, 2)`` smoothed by ``smooth_seconds``; where the never-worse check finds a smoothed turn worse (it
+    was not measured: the smoothing goes between measured turns), it eases back to the path's own turn (measured
+    and accepted); where a frame is still worse, its turn is withdrawn, each blended over a few frames. ``figures``:
+    both arms' :class:`ArmFigures` unturned, on every frame."""
+    smooth = weighted_smooth(path, torch.ones(path.shape[0], dtype=torch.float64), p.smooth_seconds * motion.fps)
+    f_n = motion.num_frames
+    eased, share = torch.ones(f_n, dtype=torch.float64), torch.ones(f_n, dtype=torch.float64)
+    changed = torch.nonzero(smooth.abs().amax(dim=1) > 1e-4).flatten()
+    if len(changed) == 0:
+        return smooth, eased, share
+    before = figures.check(changed, ctx.target.num_vertices, changed)
+    to_smooth = smooth - path
+    eased = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, path + to_smooth * w[:, None]),
+                                changed, before=before)  # fmt: skip
+    turned = path + to_smooth * eased[:, None]
+    still = torch.nonzero((eased < 1.0) & (turned.abs().amax(dim=1) > 1e-4)).flatten()
+    if len(still):
+        before = figures.check(still, ctx.target.num_vertices, still)
+        share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), still,
+                                    before=before)  # fmt: skip
+    return turned * share[:, None], eased, share
 
 
 @computes_on_cpu
@@ -198,23 +252,19 @@ def run(ctx: RefineContext, motion: Motion, params: SwivelParams | None = None) 
         return StageOutcome(motion, {"frames_changed": 0, "note": "no mapped arm", "seconds": 0.0})
     rb = reach_body(ctx.target, ctx.target_mapping)
     table, figures = measure_turns(ctx, rb, motion, arms, p)
-    turned = coherent_turns(table, arms, p, motion.fps, 1.0 / rb.scale)
-    f_n = motion.num_frames
-    changed = torch.nonzero(turned.abs().amax(dim=1) > 1e-4).flatten()
-    share = torch.ones(f_n, dtype=torch.float64)
-    if len(changed):
-        before = figures.check(changed, ctx.target.num_vertices, changed)
-        share = never_worse_weights(ctx, rb, motion, lambda w: swivel_arms(motion, arms, turned * w[:, None]), changed,
-                                    before=before)  # fmt: skip
-    out = swivel_arms(motion, arms, turned * share[:, None])
-    return StageOutcome(out, _report(table, turned, share, changed, t0))
+    scale = 1.0 / rb.scale
+    path = coherent_turns(table, accepted_turns(table, figures, scale), arms, p, motion.fps, scale)
+    turned, eased, share = checked_turns(ctx, rb, motion, arms, path, figures, p)
+    return StageOutcome(swivel_arms(motion, arms, turned), _report(table, turned, eased, share, t0))
 
 
-def _report(table: TurnTable, turned: Tensor, share: Tensor, changed: Tensor, t0: float) -> dict[str, Any]:
-    """The stage's figures: frames changed and withdrawn, the turns, and the input's frames with an arm in the
-    body (sampled points, as the judge's parts read them)."""
-    kept = (turned * share[:, None]).abs()
-    return {"frames_changed": len(changed), "withdrawn_frames": int((share[changed] < 1.0).sum()),
+def _report(table: TurnTable, turned: Tensor, eased: Tensor, share: Tensor, t0: float) -> dict[str, Any]:
+    """The stage's figures: frames changed, eased back to the path and withdrawn, the turns, and the input's
+    frames with an arm in the body (sampled points, as the judge's parts read them)."""
+    kept = turned.abs()
+    changed = torch.nonzero(kept.amax(dim=1) > 1e-4).flatten()
+    return {"frames_changed": len(changed), "eased_frames": int((eased < 1.0).sum()),
+            "withdrawn_frames": int((share < 1.0).sum()),
             "max_turn_deg": round(math.degrees(float(kept.max())) if kept.numel() else 0.0, 1),
             "mean_turn_deg": round(math.degrees(float(kept[changed].mean())) if len(changed) else 0.0, 2),
             "frames_arm_inside_before": int(table.inside.any(dim=1).sum()),

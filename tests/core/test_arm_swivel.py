@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from retarget_core.motion import Motion
 from retarget_core.refine import arm_swivel
 from retarget_core.refine.arms import Arm, about_axis, arms_of, swivel_arms
 from retarget_core.refine.hand_contacts import apply_moves
+from retarget_core.refine.judged_check import ArmFigures
 from retarget_core.refine.temporal import least_cost_path, smoothstep
 from tests.core.test_hand_contacts import FRAMES, LEFT, _context, _rest
 
@@ -123,10 +125,10 @@ def test_the_swivel_keeps_one_way_round_rather_than_flip_for_a_millimetre() -> N
     depth[5:25, :, 2] = 0.002
     depth[15, :, 1] = 0.001
     levels = torch.tensor([0.0, -turn, turn], dtype=torch.float64)
-    table = arm_swivel.TurnTable(levels, depth, depth[:, :, 0] > 0, depth[:, :, 0] > 0.01)
+    table = arm_swivel.TurnTable(levels, depth, torch.zeros_like(depth), depth[:, :, 0] > 0, depth[:, :, 0] > 0.01)
     arm = Arm(upper=1, fore=2, hand=3, side=0, followers=())
     p = arm_swivel.SwivelParams(smooth_seconds=0.0)
-    turned = arm_swivel.coherent_turns(table, [arm], p, 30.0, 1.0)[:, arm.side]
+    turned = arm_swivel.coherent_turns(table, torch.isfinite(depth), [arm], p, 30.0, 1.0)[:, arm.side]
     assert torch.allclose(turned[5:25], torch.full((20,), turn, dtype=torch.float64))
     assert float(turned.min()) >= 0.0 and float(turned[:2].abs().max()) == 0.0 and float(turned[28:].abs().max()) == 0.0
 
@@ -139,8 +141,8 @@ def test_the_search_reads_the_arms_own_points_and_the_check_the_legs_in_it_too(s
         _figures,
         _hits,
         arm_penetration,
-        arm_penetration_and_depth,
-        arm_search_depth,
+        arm_penetration_and_search,
+        arm_search_figures,
     )
     from retarget_core.contacts.hand_reach import PosedParts, posed_for_reach, reach_body
     from tests.core.test_hand_contacts import _hanging, _lifted, _placed
@@ -154,9 +156,60 @@ def test_the_search_reads_the_arms_own_points_and_the_check_the_legs_in_it_too(s
     pp = PosedParts(rb, posed_for_reach(rb, ch, pressed, frames))
     cap = 0.08 * rb.scale
     count, deepest, _ = arm_penetration(pp, LEFT, cap)
-    (_, deepest_both, _), search_both = arm_penetration_and_depth(pp, LEFT, cap)
-    search = arm_search_depth(pp, LEFT, cap)
+    (_, deepest_both, _), (search_both, volume_both) = arm_penetration_and_search(pp, LEFT, cap)
+    search, volume = arm_search_figures(pp, LEFT, cap)
     own_count = _figures(len(frames), _hits(pp, LEFT, len(rb.arm_points[LEFT]), cap, with_legs=False))[0]
     assert (deepest > 0.01).all() and (count > own_count).all()  # the hand in the thigh, the thigh in the hand
-    assert torch.equal(deepest, deepest_both) and torch.equal(search, search_both)
+    assert torch.equal(deepest, deepest_both) and torch.equal(search, search_both) and torch.equal(volume, volume_both)
     assert (search > 0).all() and (search <= deepest).all()  # the wrist's cells are in the thigh too
+
+
+def test_the_path_takes_only_turns_the_never_worse_check_would_keep() -> None:
+    """A turn that brings the deepest point up but grows the arm's penetration volume beyond the check's allowance
+    (or leaves a point deeper than the frame's deepest by more than its limit) is not on the path: the check
+    would withdraw it, and the withdrawal's blend spreads to its neighbours."""
+    f_n, turn = 10, 0.6
+    depth = torch.full((f_n, 2, 2), 0.02, dtype=torch.float64)
+    depth[:, :, 1] = 0.005
+    volume = torch.full((f_n, 2, 2), 1e-6, dtype=torch.float64)
+    volume[5:, :, 1] = 5e-6  # frames 5-9: the turn's points fill four times the volume
+    table = arm_swivel.TurnTable(torch.tensor([0.0, turn], dtype=torch.float64), depth, volume, depth[:, :, 0] > 0,
+                                 depth[:, :, 0] > 0.01)  # fmt: skip
+    before = ArmFigures(torch.full((f_n,), 2e-6), torch.full((f_n,), 0.02), torch.full((f_n,), 10.0))
+    accepted = arm_swivel.accepted_turns(table, before, 1.0)
+    assert accepted[:5, :, 1].all() and not accepted[5:, :, 1].any() and accepted[:, :, 0].all()
+    deeper = table.depth.clone()
+    deeper[:, :, 1] = 0.0225  # 2.5 mm deeper than the frame's deepest (the limit: 2)
+    assert not arm_swivel.accepted_turns(replace(table, depth=deeper), before, 1.0)[:, :, 1].any()
+    arm = Arm(upper=1, fore=2, hand=3, side=0, followers=())
+    p = arm_swivel.SwivelParams(smooth_seconds=0.0)
+    turned = arm_swivel.coherent_turns(table, accepted, [arm], p, 30.0, 1.0)[:, arm.side]
+    assert torch.equal(turned, torch.tensor([turn] * 5 + [0.0] * 5, dtype=torch.float64))
+
+
+def test_a_smoothed_turn_found_worse_eases_back_to_the_paths_turn_before_any_withdrawal(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The smoothing puts unmeasured turns between the path's measured ones; where the check finds one worse the
+    frame goes back to the path's own turn (measured, accepted), and only a frame still worse loses its turn."""
+    from types import SimpleNamespace
+
+    f_n = 30
+    path = torch.zeros(f_n, 2, dtype=torch.float64)
+    path[8:22, 0] = 0.6
+    calls: list[torch.Tensor] = []
+
+    def check(ctx, rb, motion, moved, changed, before):  # type: ignore[no-untyped-def]
+        calls.append(changed)
+        weight = torch.ones(f_n, dtype=torch.float64)
+        weight[[7, 8] if len(calls) == 1 else [7]] = 0.0  # first the smoothing's edge, then the frame before it
+        return weight
+
+    monkeypatch.setattr(arm_swivel, "never_worse_weights", check)
+    ctx = SimpleNamespace(target=SimpleNamespace(num_vertices=100))
+    motion = SimpleNamespace(num_frames=f_n, fps=30.0)
+    p = arm_swivel.SwivelParams()
+    turned, eased, share = arm_swivel.checked_turns(ctx, None, motion, [], path, ArmFigures.zeros(f_n), p)
+    smooth = arm_swivel.weighted_smooth(path, torch.ones(f_n, dtype=torch.float64), p.smooth_seconds * 30.0)
+    assert float(turned[8, 0]) == 0.6 and float(turned[7, 0]) == 0.0  # eased to the path: 0.6 on 8, 0 on 7
+    assert torch.equal(turned[10:20], smooth[10:20]) and float(smooth[7, 0]) > 0.0
+    assert int((eased < 1).sum()) == 2 and int((share < 1).sum()) == 1
+    assert len(calls) == 2 and calls[1].tolist() == [8]  # only the eased frame still turned is checked again
