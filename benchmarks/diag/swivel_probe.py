@@ -2,7 +2,9 @@
 the default chain without the swivel stage, then each arm turned about its shoulder-to-wrist line by the angle
 of a grid that makes its judged depth (sampled, `contacts/arm_depth.py`) shallowest on each frame, raw and
 smoothed in time, and the stage itself; the judge's figures after each (ACCEPTANCE.md, as `retarget eval`
-measures them). The swivel keeps the hands, so end-effector error and contacts cannot change.
+measures them). The swivel keeps the hands, so end-effector error and contacts cannot change. Each ``--swivel
+KEY=VALUE[,KEY=VALUE]`` adds a row of the stage with those numeric settings of ``SwivelParams`` changed (e.g.
+``step_cost_m=0.02,smooth_seconds=0.0667``); the stage's rows print its report too.
 
     PYTHONPATH=. flock /tmp/heavy.lock python benchmarks/diag/swivel_probe.py \\
         ../shared/data/motions/cmu/005_17.bvh ~/.cache/retarget/heldout/heldout_skinny-86cd9535396e.glb --frames 300
@@ -33,7 +35,9 @@ FIGURES = ("pen_percent", "frames_over_1cm_percent", "end_effector_error_cm", "j
 
 
 def main() -> None:
-    a = case_parser(__doc__, frames=300).parse_args()
+    ap = case_parser(__doc__, frames=300)
+    ap.add_argument("--swivel", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]")
+    a = ap.parse_args()
     torch.set_num_threads(2)
     case = prepare_case(a.clip, a.body, a.frames, a.source_body)
     prep = case.prepared
@@ -66,9 +70,18 @@ def main() -> None:
     smooth = torch.stack([weighted_smooth(torch.deg2rad(best[:, s : s + 1]), weight[:, s], 0.1 * chain.fps)[:, 0]
                           for s in range(2)], dim=1)  # fmt: skip
     report("smoothed", swivel_arms(chain, arms, smooth))
-    report("stage", arm_swivel.run(ctx, chain).motion)
+    for label, params in [("stage", arm_swivel.SwivelParams()), *(_variant(v) for v in a.swivel)]:
+        outcome = arm_swivel.run(ctx, chain, params)
+        report(label, outcome.motion)
+        print(f"{'':>16}  stage report: {outcome.report}", flush=True)
     if a.json:
         write_json(a.json, {"clip": a.clip.stem, "body": a.body, "frames": chain.num_frames, "rows": rows})
+
+
+def _variant(text: str) -> tuple[str, arm_swivel.SwivelParams]:
+    """A ``--swivel`` argument as its row label and the stage's settings."""
+    changes = {k: float(v) for k, v in (kv.split("=", 1) for kv in text.split(","))}
+    return f"stage {text}", arm_swivel.SwivelParams(**changes)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":

@@ -26,35 +26,48 @@ def arm_penetration(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor
     return _figures(pp.posed.shape[0], _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True))
 
 
-def arm_search_figures(pp: PosedParts, side: int, max_depth: float) -> tuple[Tensor, Tensor]:
+def arm_search_figures(pp: PosedParts, side: int, max_depth: float, legs_on: Tensor) -> tuple[Tensor, Tensor]:
     """``(n,)`` twice, per frame of the chunk: the deepest of arm ``side``'s own sampled vertices, without its
-    hand's (a swivel keeps the hand), inside a part the judge tests it against, and their volume. The legs'
-    vertices inside the arm are not read: a leg in the arm is the arm in the leg, which is read, and the arm's
-    tree need not be refit per turn."""
-    _, deepest, volume = _figures(pp.posed.shape[0], _hits(pp, side, pp.rb.arm_cells[side], max_depth, False))
+    hand's (a swivel keeps the hand), inside a part the judge tests it against, and of the legs' sampled vertices
+    inside the arm on the frames ``legs_on (n,)`` (bool) only; and their volume. Reading the legs in the arm means
+    refitting the arm's tree for every way it is moved: a stage reads them where they were in it before it moved
+    the arm (on a blocky, low-poly body a leg's corner in the arm is not the arm in the leg), and leaves the rest
+    to its never-worse check, which reads them everywhere."""
+    n = pp.posed.shape[0]
+    hits = _hits(pp, side, pp.rb.arm_cells[side], max_depth, with_legs=False)
+    rows = torch.nonzero(legs_on).flatten()
+    if len(rows):
+        some = pp.frames(rows)
+        hits += [(rows[f], k, d, area, on_arm) for f, k, d, area, on_arm in _leg_hits(some, side, max_depth)]
+    _, deepest, volume = _figures(n, hits)
     return deepest, volume
 
 
 def arm_penetration_and_search(pp: PosedParts, side: int,
-                               max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]:  # fmt: skip
-    """:func:`arm_penetration` and :func:`arm_search_figures` from one search: each point's depth does not
-    depend on the points searched with it, so both are the same as two calls."""
+                               max_depth: float) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:  # fmt: skip
+    """:func:`arm_penetration`, and :func:`arm_search_figures` with the legs read on every frame and ``(n,)``
+    whether a leg's point is in the arm, from one search: each point's depth does not depend on the points
+    searched with it, so both are the same as separate calls."""
     cells = pp.rb.arm_cells[side]
     hits = _hits(pp, side, len(pp.rb.arm_points[side]), max_depth, with_legs=True)
-    arm_only: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) for f, k, d, area, on_arm in hits
-                      if on_arm]  # fmt: skip
+    search: Hits = [(f[k < cells], k[k < cells], d[k < cells], area, on_arm) if on_arm else (f, k, d, area, on_arm)
+                    for f, k, d, area, on_arm in hits]  # fmt: skip
     n = pp.posed.shape[0]
-    _, deepest, volume = _figures(n, arm_only)
-    return _figures(n, hits), (deepest, volume)
+    legs_in = torch.zeros(n, dtype=torch.bool)
+    for f, _, _, _, on_arm in hits:
+        if not on_arm:
+            legs_in[f] = True
+    _, deepest, volume = _figures(n, search)
+    return _figures(n, hits), (deepest, volume, legs_in)
 
 
 def _hits(pp: PosedParts, side: int, arm_n: int, max_depth: float, with_legs: bool) -> Hits:
-    """Per test of arm ``side`` (:func:`_tests`): the points inside, as :func:`_inside` gives them ``(f, k, d)``,
-    their points' ``area (K,)``, and whether the points are the arm's (not a leg's)."""
-    out = []
-    for pts, area, name, on_arm in _tests(pp, side, arm_n, with_legs):
-        out.append((*_inside(pp, torch.from_numpy(pts), name, max_depth), area, on_arm))
-    return out
+    """What arm ``side``'s penetration is read on, per test: the first ``arm_n`` of its sampled points inside each
+    part the judge tests the arm against, and (``with_legs``) each leg's points inside the arm; the points inside,
+    as :func:`_inside` gives them ``(f, k, d)``, their points' ``area (K,)``, and whether they are the arm's."""
+    pts, area = torch.from_numpy(pp.rb.arm_points[side][:arm_n]), pp.rb.arm_area[side][:arm_n]
+    out: Hits = [(*_inside(pp, pts, name, max_depth), area, True) for name in LIMB_TESTS[f"{HANDS[side]}_arm"]]
+    return out + (_leg_hits(pp, side, max_depth) if with_legs else [])
 
 
 def _figures(n: int, hits: Hits) -> tuple[Tensor, Tensor, Tensor]:
@@ -68,15 +81,11 @@ def _figures(n: int, hits: Hits) -> tuple[Tensor, Tensor, Tensor]:
     return count, deepest, total
 
 
-def _tests(pp: PosedParts, side: int, arm_n: int, with_legs: bool) -> list[tuple]:
-    """What arm ``side``'s penetration is read on: ``(points, areas, part, on_arm)``: the first ``arm_n`` of its
-    sampled points against each part the judge tests the arm against, and (``with_legs``) each leg's points
-    against the arm."""
+def _leg_hits(pp: PosedParts, side: int, max_depth: float) -> Hits:
+    """:func:`_hits` of the legs' points inside arm ``side`` alone."""
     arm = f"{HANDS[side]}_arm"
-    pts, area = pp.rb.arm_points[side][:arm_n], pp.rb.arm_area[side][:arm_n]
-    tests = [(pts, area, name, True) for name in LIMB_TESTS[arm]]
-    legs = [(p, a, arm, False) for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)] if with_legs else []
-    return tests + legs
+    return [(*_inside(pp, torch.from_numpy(p), arm, max_depth), a, False)
+            for p, a in zip(pp.rb.leg_points, pp.rb.leg_area, strict=True)]  # fmt: skip
 
 
 def _inside(pp: PosedParts, pts: Tensor, name: str, max_depth: float) -> tuple[Tensor, Tensor, Tensor]:

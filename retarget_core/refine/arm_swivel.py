@@ -8,8 +8,9 @@ contacts do not move. The collision stage cannot see most of these vertices insi
 them outside), and the posed-mesh lever it has costs end-effector error (docs/collisions.md).
 
 1. Measure, per frame and arm, the deepest of its sampled vertices (not its hand's) inside a part the judge tests
-   it against, on the judge's closed parts (:func:`retarget_core.contacts.arm_depth.arm_search_figures`; the
-   legs' vertices inside the arm are left to the check: a leg in the arm is the arm in the leg).
+   it against, and of the legs' vertices inside it, on the judge's closed parts
+   (:func:`retarget_core.contacts.arm_depth.arm_search_figures`; the turned arm reads the legs only on the frames
+   where they were in it unturned: elsewhere its tree is not refit per turn, and the check reads them).
 2. Search: where an arm is deeper than ``search_m``, and ``margin_seconds`` around such frames, each turn of
    ``turns_deg`` is posed and measured the same way. A search, not a gradient step: a local (plane) model of
    the depth, tried first, got a third of the gain, since a deep elbow often has to swing 30 to 70 degrees
@@ -77,21 +78,23 @@ class SwivelParams:
 class TurnTable:
     """Per frame and arm the deepest sampled arm point (body scale) at each turn of ``levels (K,)`` radians (no
     turn first): ``depth (F, 2, K)``, inf where a turn was not measured, and the arm's points' ``volume (F, 2, K)``
-    (:func:`arm_search_figures`); ``inside`` and ``deep`` ``(F, 2)``: whether the arm, unturned, is in the body or
-    deeper than 1 cm."""
+    (:func:`arm_search_figures`); ``inside``, ``deep`` and ``legs_in`` ``(F, 2)``: whether the arm, unturned, is
+    in the body, deeper than 1 cm, and holds a leg's point."""
 
     levels: Tensor
     depth: Tensor
     volume: Tensor
     inside: Tensor
     deep: Tensor
+    legs_in: Tensor
 
     @classmethod
     def unmeasured(cls, levels: Tensor, f_n: int) -> TurnTable:
         """A table of ``f_n`` frames with nothing measured yet."""
         shape = (f_n, 2, len(levels))
+        flags = [torch.zeros(f_n, 2, dtype=torch.bool) for _ in range(3)]
         return cls(levels, torch.full(shape, math.inf, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64),
-                   torch.zeros(f_n, 2, dtype=torch.bool), torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
+                   *flags)  # fmt: skip
 
 
 def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor, sides: list[int],
@@ -103,7 +106,7 @@ def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor
     for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
         pp = PosedParts(rb, posed)
         for side in sides:
-            out[s : s + len(fr), side] = arm_search_figures(pp, side, ARM_DEPTH_CAP_M * rb.scale)[0]
+            out[s : s + len(fr), side] = arm_penetration_and_search(pp, side, ARM_DEPTH_CAP_M * rb.scale)[1][0]
         s += len(fr)
     return out
 
@@ -139,19 +142,20 @@ def measure_turns(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[
             for arm in arms:
                 at = torch.nonzero(search[done, arm.side]).flatten()
                 if len(at):
-                    depth, volume = turn_depths(ctx, rb, motion, arms, arm, parts, done, at, turns, chunk)
+                    legs_on = table.legs_in[done[at], arm.side]
+                    depth, volume = turn_depths(ctx, rb, motion, arms, arm, parts, done, at, legs_on, turns, chunk)
                     table.depth[done[at], arm.side, 1:], table.volume[done[at], arm.side, 1:] = depth.T, volume.T
     return table, figures
 
 
 def _measure_unturned(rb: ReachBody, pp: PosedParts, frames: Tensor, table: TurnTable, figures: ArmFigures) -> None:
-    """Each arm's :func:`arm_search_figures` (into ``table``: depth and volume at no turn, inside, deep) and both
+    """Each arm's :func:`arm_search_figures` (into ``table``: depth and volume at no turn, inside, deep, legs_in) and both
     arms' :class:`ArmFigures` at clip ``frames (n,)``, whose parts are ``pp``."""
     rows = slice(int(frames[0]), int(frames[-1]) + 1)
     for side in range(2):  # both, as arm_check reads them
-        with_hand, (depth, volume) = arm_penetration_and_search(pp, side, ARM_DEPTH_CAP_M * rb.scale)
+        with_hand, (depth, volume, legs_in) = arm_penetration_and_search(pp, side, ARM_DEPTH_CAP_M * rb.scale)
         figures.add(rows, *with_hand)
-        table.depth[rows, side, 0], table.volume[rows, side, 0] = depth, volume
+        table.depth[rows, side, 0], table.volume[rows, side, 0], table.legs_in[rows, side] = depth, volume, legs_in
         table.inside[rows, side], table.deep[rows, side] = depth > 0, depth > DEEP_M * rb.scale
 
 
@@ -164,8 +168,10 @@ def dilated(mask: Tensor, frames: int) -> Tensor:
 
 
 def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
-                frames: Tensor, at: Tensor, turns: Tensor, chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
-    """``(T, m)`` twice: ``arm``'s :func:`arm_search_figures` at each of ``turns (T,)`` on rows ``at (m,)``
+                frames: Tensor, at: Tensor, legs_on: Tensor, turns: Tensor,
+                chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """``(T, m)`` twice: ``arm``'s :func:`arm_search_figures` at each of ``turns (T,)`` on rows ``at (m,)`` (the legs
+    read where ``legs_on (m,)``)
     of the chunk of clip ``frames (n,)`` whose parts are ``pp``. The turns are measured about ``chunk`` frames at
     a time, their parts made from the chunk's where the turn left them (the legs, most of the torso, head and
     other arm)."""
@@ -181,7 +187,7 @@ def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Ar
     for first in range(0, len(turns), group):
         count = min(group, len(turns) - first)
         parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
-        d, v = arm_search_figures(parts, arm.side, cap)
+        d, v = arm_search_figures(parts, arm.side, cap, legs_on.repeat(count))
         depth.append(d.view(count, m))
         volume.append(v.view(count, m))
     return torch.cat(depth), torch.cat(volume)

@@ -125,7 +125,8 @@ def test_the_swivel_keeps_one_way_round_rather_than_flip_for_a_millimetre() -> N
     depth[5:25, :, 2] = 0.002
     depth[15, :, 1] = 0.001
     levels = torch.tensor([0.0, -turn, turn], dtype=torch.float64)
-    table = arm_swivel.TurnTable(levels, depth, torch.zeros_like(depth), depth[:, :, 0] > 0, depth[:, :, 0] > 0.01)
+    table = arm_swivel.TurnTable(levels, depth, torch.zeros_like(depth), depth[:, :, 0] > 0, depth[:, :, 0] > 0.01,
+                                 torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
     arm = Arm(upper=1, fore=2, hand=3, side=0, followers=())
     p = arm_swivel.SwivelParams(smooth_seconds=0.0)
     turned = arm_swivel.coherent_turns(table, torch.isfinite(depth), [arm], p, 30.0, 1.0)[:, arm.side]
@@ -135,8 +136,9 @@ def test_the_swivel_keeps_one_way_round_rather_than_flip_for_a_millimetre() -> N
 
 def test_the_search_reads_the_arms_own_points_and_the_check_the_legs_in_it_too(skinny) -> None:  # type: ignore[no-untyped-def]
     """A hand pressed 3 cm into its thigh: the judge's arm penetration (the never-worse check's) reads the
-    thigh's points inside the hand; the swivel's search depth reads only the arm's own points without the hand
-    (a swivel keeps the hand), the same from one search as alone."""
+    thigh's points inside the hand; the swivel's search reads the arm's own points without the hand (a swivel
+    keeps the hand) and the thigh's points inside the arm where it is told to (where they were before the turn),
+    the same from one search as alone."""
     from retarget_core.contacts.arm_depth import (
         _figures,
         _hits,
@@ -156,12 +158,14 @@ def test_the_search_reads_the_arms_own_points_and_the_check_the_legs_in_it_too(s
     pp = PosedParts(rb, posed_for_reach(rb, ch, pressed, frames))
     cap = 0.08 * rb.scale
     count, deepest, _ = arm_penetration(pp, LEFT, cap)
-    (_, deepest_both, _), (search_both, volume_both) = arm_penetration_and_search(pp, LEFT, cap)
-    search, volume = arm_search_figures(pp, LEFT, cap)
+    (_, deepest_both, _), (search_both, volume_both, legs_in) = arm_penetration_and_search(pp, LEFT, cap)
+    search, volume = arm_search_figures(pp, LEFT, cap, legs_in)
+    own, own_volume = arm_search_figures(pp, LEFT, cap, torch.zeros(len(frames), dtype=torch.bool))
     own_count = _figures(len(frames), _hits(pp, LEFT, len(rb.arm_points[LEFT]), cap, with_legs=False))[0]
     assert (deepest > 0.01).all() and (count > own_count).all()  # the hand in the thigh, the thigh in the hand
     assert torch.equal(deepest, deepest_both) and torch.equal(search, search_both) and torch.equal(volume, volume_both)
-    assert (search > 0).all() and (search <= deepest).all()  # the wrist's cells are in the thigh too
+    assert legs_in.all() and (own > 0).all() and (own <= search).all()  # the wrist's cells are in the thigh too
+    assert (own_volume < volume).all()  # the thigh's points in the hand are read only where told
 
 
 def test_the_path_takes_only_turns_the_never_worse_check_would_keep() -> None:
@@ -174,7 +178,7 @@ def test_the_path_takes_only_turns_the_never_worse_check_would_keep() -> None:
     volume = torch.full((f_n, 2, 2), 1e-6, dtype=torch.float64)
     volume[5:, :, 1] = 5e-6  # frames 5-9: the turn's points fill four times the volume
     table = arm_swivel.TurnTable(torch.tensor([0.0, turn], dtype=torch.float64), depth, volume, depth[:, :, 0] > 0,
-                                 depth[:, :, 0] > 0.01)  # fmt: skip
+                                 depth[:, :, 0] > 0.01, torch.zeros(f_n, 2, dtype=torch.bool))  # fmt: skip
     before = ArmFigures(torch.full((f_n,), 2e-6), torch.full((f_n,), 0.02), torch.full((f_n,), 10.0))
     accepted = arm_swivel.accepted_turns(table, before, 1.0)
     assert accepted[:5, :, 1].all() and not accepted[5:, :, 1].any() and accepted[:, :, 0].all()
