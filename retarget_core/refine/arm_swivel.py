@@ -16,12 +16,14 @@ them outside), and the posed-mesh lever it has costs end-effector error (docs/co
    the depth, tried first, got a third of the gain, since a deep elbow often has to swing 30 to 70 degrees
    round the chest to come out.
 3. Choose a path in time: per arm, the sequence of measured turns with the least summed depth plus a cost on
-   each change between frames (``step_cost_m``; dynamic programming, :func:`least_cost_path`), lightly
-   smoothed. Every frame's turn is one that was measured, so the never-worse check finds few frames worse;
-   the best turn per frame, smoothed in time, put unmeasured turns between measured ones, and the withdrawals
-   of those spread over the span (docs/collisions.md).
-4. The never-worse check on the judge's parts (:func:`retarget_core.refine.judged_check.never_worse_weights`):
-   a frame whose judged arm penetration grew is withdrawn smoothly.
+   each change between frames (``step_cost_m``; dynamic programming, :func:`least_cost_path`), among the turns
+   the never-worse check would keep as far as the arm's own points tell (:func:`accepted_turns`: volume and
+   depth), lightly smoothed. Every frame's turn is one that was measured and accepted, so the check finds few
+   frames worse; the best turn per frame, smoothed in time, put unmeasured turns between measured ones, and the
+   withdrawals of those spread over the span (docs/collisions.md).
+4. The never-worse check on the judge's parts (:func:`retarget_core.refine.judged_check.never_worse_weights`,
+   :func:`checked_turns`): a frame whose smoothed turn made the judged arm penetration grow eases back to the
+   path's own turn; one still worse there is withdrawn; both smoothly.
 
 Lengths at a 1.80 m character (scaled to the body). Computes on the CPU, a chunk of frames at a time: the turns
 of a chunk's frames are measured on its parts, posing and refitting again only what a turn moves
@@ -170,9 +172,8 @@ def dilated(mask: Tensor, frames: int) -> Tensor:
 def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Arm], arm: Arm, pp: PosedParts,
                 frames: Tensor, at: Tensor, legs_on: Tensor, turns: Tensor,
                 chunk: int) -> tuple[Tensor, Tensor]:  # fmt: skip
-    """``(T, m)`` twice: ``arm``'s :func:`arm_search_figures` at each of ``turns (T,)`` on rows ``at (m,)`` (the legs
-    read where ``legs_on (m,)``)
-    of the chunk of clip ``frames (n,)`` whose parts are ``pp``. The turns are measured about ``chunk`` frames at
+    """``(T, m)`` twice: ``arm``'s :func:`arm_search_figures` (the legs read where ``legs_on (m,)``) at each of
+    ``turns (T,)`` on rows ``at (m,)`` of the chunk of clip ``frames (n,)`` whose parts are ``pp``. The turns are measured about ``chunk`` frames at
     a time, their parts made from the chunk's where the turn left them (the legs, most of the torso, head and
     other arm)."""
     m = len(at)
