@@ -108,7 +108,8 @@ def arm_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, frames: Tensor
     for fr, posed in posed_chunks(rb, ctx.target, motion, frames, chunk):
         pp = PosedParts(rb, posed)
         for side in sides:
-            out[s : s + len(fr), side] = arm_penetration_and_search(pp, side, ARM_DEPTH_CAP_M * rb.scale)[1][0]
+            every = torch.ones(len(fr), dtype=torch.bool)
+            out[s : s + len(fr), side] = arm_search_figures(pp, side, ARM_DEPTH_CAP_M * rb.scale, every)[0]
         s += len(fr)
     return out
 
