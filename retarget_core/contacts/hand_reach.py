@@ -346,7 +346,8 @@ def _part_reach(rb: ReachBody, closed: ClosedPart, name: str, posed: Tensor, sel
                 hand: Tensor, bound: Tensor, points: tuple[np.ndarray, ...], out: Reach) -> None:  # fmt: skip
     """:func:`hand_reach` of the queries ``sel`` against one part: its tree refit on their frames only."""
     frames, local_frame = torch.unique(frame[sel], return_inverse=True)
-    local = torch.from_numpy(closed.posed(posed[frames].numpy()))
+    at_frames = posed[frames]
+    local = torch.from_numpy(closed.posed(at_frames.numpy()))
     boxes = refit(rb.trees[name], local)
     fine = points is rb.hand_points
     for h in range(len(HANDS)):
@@ -354,7 +355,7 @@ def _part_reach(rb: ReachBody, closed: ClosedPart, name: str, posed: Tensor, sel
         f = local_frame[hand[sel] == h]
         if len(mine) == 0 or len(points[h]) == 0:
             continue
-        args = (rb.trees[name], (local, boxes), posed[frames], f)
+        args = (rb.trees[name], (local, boxes), at_frames, f)
         limit = bound[mine]
         if fine:  # the coarse samples first: the fine search needs only to look nearer than they found
             coarse = _empty_reach(len(out.distance))
@@ -384,7 +385,7 @@ def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, 
     local, boxes = posed_part
     k = len(pts)
     qf = frame.repeat_interleave(k)
-    qp = posed[frame][:, pts].reshape(-1, 3)
+    qp = posed[:, pts][frame].reshape(-1, 3)  # the points' rows first: not every vertex of each query's frame
     d, face = closest_triangles(tree, boxes, qf, qp, max_distance.repeat_interleave(k))
     check = torch.nonzero(d < inside_check).flatten()
     if len(check):
@@ -412,7 +413,7 @@ def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames:
     with torch.no_grad():
         grot, gpos = kinematics.forward_kinematics(motion.skeleton.parents, motion.rotations[frames],
                                                    motion.translations[frames])  # fmt: skip
-        posed = torch.zeros(len(frames), character.num_vertices, 3)
+        posed = torch.zeros(len(frames), character.num_vertices, 3, dtype=torch.float64)  # as the measures read it
         posed[:, read] = character.pose_rows(read, grot, gpos).to(posed.dtype)
     return posed
 
@@ -463,7 +464,7 @@ def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Moti
         same = (grot.view(-1, *brot.shape) == brot).all(dim=-1) & (gpos.view(-1, *bpos.shape) == bpos).all(dim=-1)
         joints = ~same.flatten(0, 1).all(dim=0)  # (J,) the joints moved on some frame
         rows = read[(character.dense_weights()[read][:, joints] != 0).any(dim=1)]
-        new = character.pose_rows(rows, grot, gpos).to(torch.get_default_dtype())  # posed_for_reach's dtype
+        new = character.pose_rows(rows, grot, gpos).to(torch.float64)  # posed_for_reach's dtype
     mask = np.zeros(character.num_vertices, dtype=bool)
     mask[rows.numpy()] = True
     return MovedPoses(posed, rows, new, mask)
