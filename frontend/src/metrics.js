@@ -38,6 +38,8 @@ export const SUMMARY_LABELS = {
   penetrating_vertices_percent: 'Penetrating vertices',
   penetrating_vertices_percent_by_part: 'Penetrating vertices',
   penetrating_frames_percent: 'Frames with penetration',
+  deep_frames_percent: 'Frames deeper than 1 cm',
+  deep_frames_percent_by_cause: 'Frames deeper than 1 cm',
   contact_pairs: 'Contact vertex pairs',
   contact_frames: 'Frames with contacts',
   contact_distance_mean: 'Contact distance, mean',
@@ -63,7 +65,14 @@ const HIGHER_IS_BETTER = new Set(['contact_satisfied_percent', 'foot_contact_acc
 /** Summary fields that are context, not quality (no colouring). */
 const NEUTRAL = new Set(['frames', 'fps', 'contact_pairs', 'contact_frames', 'foot_contact_frames', 'mpjpe']);
 const PERCENT = new Set(['penetrating_vertices_percent', 'penetrating_frames_percent', 'contact_satisfied_percent',
-  'penetrating_vertices_percent_by_part']);
+  'penetrating_vertices_percent_by_part', 'deep_frames_percent', 'deep_frames_percent_by_cause']);
+
+/** Why a frame is deeper than 1 cm (metrics/deep_frames.py): the labels of deep_frames_percent_by_cause's rows. */
+const DEEP_CAUSE_LABELS = {
+  pose: 'a joint rotation could mend',
+  placement: 'held by the hands and feet',
+  fold: 'skinning fold',
+};
 
 const isObj = (v) => v != null && typeof v === 'object' && !Array.isArray(v);
 const isNum = (v) => typeof v === 'number' && Number.isFinite(v);
@@ -138,7 +147,8 @@ function splitRows(key, before, after) {
   return names.map((n) => {
     const r = row(key, isObj(before) ? before[n] : undefined, isObj(after) ? after[n] : undefined);
     const part = PARTS.find((p) => p.id === n);
-    return { ...r, key: `${key}.${n}`, label: `${base}, ${part ? part.label : n.replace(/_/g, ' ')}`, part: n };
+    const name = part ? part.label : (DEEP_CAUSE_LABELS[n] ?? n.replace(/_/g, ' '));
+    return { ...r, key: `${key}.${n}`, label: `${base}, ${name}`, part: n };
   });
 }
 

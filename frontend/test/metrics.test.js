@@ -178,3 +178,25 @@ test('the source measured on its own body: flags in words and figures', async ()
   assert.equal(q.figures[0].unit, '% of frames');
   assert.deepEqual(readMetrics(r).source, q);
 });
+
+test('frames deeper than 1 cm: the share and one row per cause, labelled for a reviewer', () => {
+  const r = report10();
+  r.before.summary.deep_frames_percent = 80;
+  r.after.summary.deep_frames_percent = 20;
+  r.before.summary.deep_frames_percent_by_cause = { pose: 50, placement: 30, fold: 0 };
+  r.after.summary.deep_frames_percent_by_cause = { pose: 5, placement: 15, fold: 0 };
+  const rows = summaryRows(r);
+  const total = rows.find((x) => x.key === 'deep_frames_percent');
+  assert.equal(total.label, 'Frames deeper than 1 cm');
+  assert.equal(total.unit, '%');
+  assert.equal(total.verdict, 'better');
+  const causes = rows.filter((x) => x.key.startsWith('deep_frames_percent_by_cause.'));
+  assert.deepEqual(causes.map((x) => x.label), [
+    'Frames deeper than 1 cm, a joint rotation could mend',
+    'Frames deeper than 1 cm, held by the hands and feet',
+    'Frames deeper than 1 cm, skinning fold',
+  ]);
+  assert.equal(causes[1].before, 30);
+  assert.equal(causes[1].after, 15);
+  assert.equal(causes[2].verdict, 'same');
+});

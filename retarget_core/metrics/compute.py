@@ -36,6 +36,7 @@ from retarget_core.energy.sdf import (
     segment_matrices,
     vertex_depths,
 )
+from retarget_core.metrics.deep_frames import CAUSES, DeepFrames, deep_frames
 from retarget_core.metrics.depth import VertexDepths
 from retarget_core.metrics.frames import Reuse, frame_chunks, hand_part_candidates, unchanged_frames
 from retarget_core.metrics.report import MethodMetrics, MetricSummary, PenetratingVertices, Series, measure
@@ -93,6 +94,7 @@ class ClipMeasures:
     vertex_cluster: Tensor | None = None
     # Hand-to-part distance of every source contact (see :func:`measure_contact_hands`).
     contact_hands: ContactHandMeasures | None = None
+    deep: DeepFrames | None = None  # why each frame deeper than 1 cm is (:mod:`retarget_core.metrics.deep_frames`)
 
     @property
     def num_frames(self) -> int:
@@ -166,11 +168,13 @@ def measure_clip(
         _, rest_pos = character.skeleton.rest_global()
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
         c_dist, c_frame = contact_pair_distances(character, contacts, grot, gpos, params.frame_chunk)
+    depths = VertexDepths.concat(out.depth, f_n, v_n)
+    deep = deep_frames(character, sdf, depths, grot, gpos, mapping.joints,
+                       REFERENCE_HEIGHT_M / character.height)
     return ClipMeasures(
-        motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx],
-        VertexDepths.concat(out.depth, f_n, v_n), out.volume, out.limb,
-        out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
-        hands.result() if hands is not None else None,
+        motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx], depths, out.volume,
+        out.limb, out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
+        hands.result() if hands is not None else None, deep,
     )  # fmt: skip
 
 
@@ -629,6 +633,8 @@ def _summary(
         penetrating_vertices_percent=_round(_mean(pen.vertices)),
         penetrating_frames_percent=_round(_mean((frame_max > tol).float() * 100.0)),
         penetrating_vertices_percent_by_part=pen.by_part,
+        deep_frames_percent=m.deep.percent() if m.deep is not None else None,
+        deep_frames_percent_by_cause=m.deep.percent_by_cause() if m.deep is not None else None,
         contact_pairs=int(m.contact_distance.numel()),
         contact_frames=int((con.count > 0).sum()),
         contact_distance_mean=measure(con.mean * cm if con.mean is not None else None, s, "cm"),
@@ -651,6 +657,9 @@ def _summary(
     )
 
 
+DEEP_CAUSE_UNIT = ", ".join(f"{i} {c}" for i, c in enumerate(CAUSES))  # the deep_frame_cause series' codes
+
+
 def _all_series(
     m: ClipMeasures, k: float, pen: _Penetration, col: _Collisions, con: _Contacts, feet: _Feet, err: _Errors
 ) -> dict[str, Series]:
@@ -666,6 +675,8 @@ def _all_series(
         "ground_penetration": _series(pen.ground * k, "cm at 1.80 m"),
     }
     series.update(contact_hand_series(m))
+    if m.deep is not None:
+        series["deep_frame_cause"] = _series(m.deep.cause.clamp_min(0).float(), DEEP_CAUSE_UNIT, m.deep.cause >= 0, digits=0)
     for c, name in enumerate(m.feet.names):
         if bool(m.feet.available[c]):
             series[f"foot_contact_{name}"] = _series(m.feet.labels[:, c].float(), "0/1", digits=0)

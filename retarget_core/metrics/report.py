@@ -43,6 +43,16 @@ class MetricSummary(BaseModel):
         description="penetrating_vertices_percent split by the part of each penetrating vertex (head, torso, "
         "left_arm, right_arm, left_leg, right_leg): shares of all vertices, adding up to the total",
     )
+    deep_frames_percent: float | None = Field(
+        None, description="frames whose deepest penetrating vertex is more than 1 cm deep at 1.80 m (this measure's "
+        "depths, beyond the bind pose)",
+    )
+    deep_frames_percent_by_cause: dict[str, float] | None = Field(
+        None,
+        description="deep_frames_percent split by why (docs/metrics.md 'Deep frames'): pose (a joint rotation could "
+        "mend it), placement (held by where the hands and feet are: no elbow or knee turn mends it), fold (a skinning "
+        "fold: no rotation mends it)",
+    )
     contact_pairs: int
     contact_frames: int
     contact_distance_mean: Measure
