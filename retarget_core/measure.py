@@ -174,8 +174,8 @@ def measure_job(
         hands = found.self_contacts.distances  # the source's hand-to-part distances, for the false contacts
         before_metrics, before_measures = compute_metrics(
             target, target_mapping, sdf, before, contacts=constraints, reference=ref_measures, source_feet=found.feet,
-            source_hand_distances=hands, cull_hands=not every_frame,
-        )
+            source_hand_distances=hands, cull_hands=not every_frame, deep_causes=after is None or after is before,
+        )  # why frames are deeper than 1 cm: read on the result (the copy's, deep nearly everywhere, cost 2.5 s a job)
         after_metrics, after_measures = None, None
         if after is before:  # no stage changed the copy: the same measures, summarised against themselves
             after_metrics = summarize(before_measures, before_measures, ref_measures, found.feet)

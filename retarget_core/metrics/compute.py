@@ -138,13 +138,15 @@ def measure_clip(
     source_hand_distances: HandPartDistances | None = None,
     reuse: Reuse | None = None,
     cull_hands: bool = True,
+    deep_causes: bool = True,
 ) -> ClipMeasures:
     """Pose ``character`` by ``motion`` (its skeleton must be the character's) and measure every frame.
     ``source_hand_distances``: the source's hand-to-part distances (``SelfContacts.distances``), for the false
     contacts (docs/metrics.md "Hand contacts"). ``reuse``: measures of another motion on this character (same
     ground, contacts and source): frames posed exactly as there are copied, not measured. ``cull_hands``: compute
     exact hand-to-part distances only where the penetration queries found a hand near a part (False: on every
-    frame, the reference the culled path is tested against)."""
+    frame, the reference the culled path is tested against). ``deep_causes``: read why each frame deeper than 1 cm
+    is (:mod:`retarget_core.metrics.deep_frames`; else only which are)."""
     params = params or MetricParams()
     if motion.skeleton.num_joints != character.skeleton.num_joints:
         raise ValueError("the motion does not animate this character's skeleton")
@@ -169,8 +171,8 @@ def measure_clip(
         feet = detect_foot_contacts(gpos, rest_pos, mapping, character.height, motion.fps, ground, foot_params)
         c_dist, c_frame = contact_pair_distances(character, contacts, grot, gpos, params.frame_chunk)
     depths = VertexDepths.concat(out.depth, f_n, v_n)
-    deep = deep_frames(character, sdf, depths, grot, gpos, mapping.joints,
-                       REFERENCE_HEIGHT_M / character.height)
+    scale = REFERENCE_HEIGHT_M / character.height
+    deep = deep_frames(character, sdf, depths, grot, gpos, mapping.joints, scale, deep_causes)
     return ClipMeasures(
         motion.name, motion.fps, character.height, parts.body_count, names, gpos[:, idx], depths, out.volume,
         out.limb, out.lowest - ground, c_dist, c_frame, feet, vertex_part_clusters(parts),
@@ -675,7 +677,7 @@ def _all_series(
         "ground_penetration": _series(pen.ground * k, "cm at 1.80 m"),
     }
     series.update(contact_hand_series(m))
-    if m.deep is not None:
+    if m.deep is not None and m.deep.cause is not None:
         series["deep_frame_cause"] = _series(m.deep.cause.clamp_min(0).float(), DEEP_CAUSE_UNIT, m.deep.cause >= 0, digits=0)
     for c, name in enumerate(m.feet.names):
         if bool(m.feet.available[c]):
@@ -755,12 +757,14 @@ def compute_metrics(
     source_hand_distances: HandPartDistances | None = None,
     reuse: Reuse | None = None,
     cull_hands: bool = True,
+    deep_causes: bool = True,
 ) -> tuple[MethodMetrics, ClipMeasures]:
     """:func:`measure_clip` then :func:`summarize`; returns the metrics and the measures (reuse them as the
     ``original`` of a later result). ``source_hand_distances`` (``SelfContacts.distances`` of the source):
-    adds the false contacts. ``reuse``, ``cull_hands``: see :func:`measure_clip`."""
+    adds the false contacts. ``reuse``, ``cull_hands``, ``deep_causes``: see :func:`measure_clip`."""
     measures = measure_clip(character, mapping, sdf, motion, contacts, params=params,
-                            source_hand_distances=source_hand_distances, reuse=reuse, cull_hands=cull_hands)  # fmt: skip
+                            source_hand_distances=source_hand_distances, reuse=reuse, cull_hands=cull_hands,
+                            deep_causes=deep_causes)  # fmt: skip
     return summarize(measures, original, reference, source_feet, params), measures
 
 

@@ -52,34 +52,40 @@ HELD_SEGMENTS = frozenset({"LeftHand", "RightHand", "LeftFoot", "RightFoot", "Le
 
 @dataclass(frozen=True)
 class DeepFrames:
-    """cause: ``(F,)`` index into :data:`CAUSES` of each frame deeper than 1 cm, -1 elsewhere."""
+    """deep: ``(F,)`` frames deeper than 1 cm; cause: ``(F,)`` index into :data:`CAUSES` of each of them, -1
+    elsewhere (None: not read)."""
 
-    cause: Tensor
+    deep: Tensor
+    cause: Tensor | None = None
 
     def percent(self) -> float | None:
         """The share (%) of frames deeper than 1 cm (None without frames)."""
-        return round(100.0 * float((self.cause >= 0).float().mean()), 4) if len(self.cause) else None
+        return round(100.0 * float(self.deep.float().mean()), 4) if len(self.deep) else None
 
     def percent_by_cause(self) -> dict[str, float] | None:
-        """That share split by cause (the entries add up to :meth:`percent`)."""
-        if not len(self.cause):
+        """That share split by cause (the entries add up to :meth:`percent`; None when not read)."""
+        if self.cause is None or not len(self.cause):
             return None
         return {c: round(100.0 * float((self.cause == i).float().mean()), 4) for i, c in enumerate(CAUSES)}
 
 
 def deep_frames(character: Character, sdf: PartSDF, depths: VertexDepths, grot: Tensor, gpos: Tensor,
-                joint_of: dict[str, int], scale_to_180: float) -> DeepFrames:  # fmt: skip
-    """The cause of each deep frame from the per-vertex ``depths`` (m, the body's scale; ``sdf``'s measure), the
-    world joint transforms ``grot (F, J, 4)``, ``gpos (F, J, 3)`` and ``joint_of`` (canonical name -> joint)."""
-    cause = torch.full((depths.num_frames,), -1, dtype=torch.long)
+                joint_of: dict[str, int], scale_to_180: float, causes: bool = True) -> DeepFrames:  # fmt: skip
+    """The frames deeper than 1 cm from the per-vertex ``depths`` (m, the body's scale; ``sdf``'s measure) and,
+    with ``causes``, why, from the world joint transforms ``grot (F, J, 4)``, ``gpos (F, J, 3)`` and ``joint_of``
+    (canonical name -> joint)."""
     deep_m = DEEP_M / scale_to_180
     frame, vertex, _, _ = depths.deepest(deep_m, 1)
-    if len(frame) == 0:
-        return DeepFrames(cause)
-    held = _held(character, sdf, vertex, deep_m, grot[frame], gpos[frame], joint_of)
-    fold = foreign_weight(sdf.parts, vertex) > FOLD_WEIGHT
-    cause[frame] = torch.where(fold, CAUSES.index("fold"), torch.where(held, CAUSES.index("placement"), 0))
-    return DeepFrames(cause)
+    deep = torch.zeros(depths.num_frames, dtype=torch.bool)
+    deep[frame] = True
+    if not causes:
+        return DeepFrames(deep)
+    cause = torch.full((depths.num_frames,), -1, dtype=torch.long)
+    if len(frame):
+        held = _held(character, sdf, vertex, deep_m, grot[frame], gpos[frame], joint_of)
+        fold = foreign_weight(sdf.parts, vertex) > FOLD_WEIGHT
+        cause[frame] = torch.where(fold, CAUSES.index("fold"), torch.where(held, CAUSES.index("placement"), 0))
+    return DeepFrames(deep, cause)
 
 
 def foreign_weight(parts: BodyParts, vertex: Tensor) -> Tensor:
