@@ -232,7 +232,7 @@ class PosedParts:
             boxes = parent.tree_boxes(name, idx[frames])
             rows = idx[frames] if boxes.rows is None else boxes.rows[idx[frames]]
             return PosedBoxes(boxes.lo[rows], boxes.hi[rows], boxes.vertices[rows])
-        local = torch.from_numpy(closed.posed(self.posed[frames].numpy())).contiguous()
+        local = torch.from_numpy(closed.posed(self.posed.numpy(), frames.numpy())).contiguous()
         return refit(self.rb.trees[name], local)
 
 
@@ -277,7 +277,7 @@ class MovedParts(PosedParts):
         """Part ``name``'s tree on ``frames (k,)`` only (``k`` rows), refit from the base's where it moved."""
         base = self.base.tree_boxes(name, torch.unique(self.base_frame[frames]))
         rows = self.base_frame[frames] if base.rows is None else base.rows[self.base_frame[frames]]
-        local = torch.from_numpy(closed.posed(self.posed[frames].numpy())).contiguous()
+        local = torch.from_numpy(closed.posed(self.posed.numpy(), frames.numpy())).contiguous()
         changed = torch.from_numpy(self._changed(closed))
         return refit_changed(self.rb.trees[name], local, replace(base, rows=rows), changed)
 
@@ -346,8 +346,7 @@ def _part_reach(rb: ReachBody, closed: ClosedPart, name: str, posed: Tensor, sel
                 hand: Tensor, bound: Tensor, points: tuple[np.ndarray, ...], out: Reach) -> None:  # fmt: skip
     """:func:`hand_reach` of the queries ``sel`` against one part: its tree refit on their frames only."""
     frames, local_frame = torch.unique(frame[sel], return_inverse=True)
-    at_frames = posed[frames]
-    local = torch.from_numpy(closed.posed(at_frames.numpy()))
+    local = torch.from_numpy(closed.posed(posed.numpy(), frames.numpy()))
     boxes = refit(rb.trees[name], local)
     fine = points is rb.hand_points
     for h in range(len(HANDS)):
@@ -355,14 +354,16 @@ def _part_reach(rb: ReachBody, closed: ClosedPart, name: str, posed: Tensor, sel
         f = local_frame[hand[sel] == h]
         if len(mine) == 0 or len(points[h]) == 0:
             continue
-        args = (rb.trees[name], (local, boxes), at_frames, f)
+        args = (rb.trees[name], (local, boxes), f)
         limit = bound[mine]
         if fine:  # the coarse samples first: the fine search needs only to look nearer than they found
             coarse = _empty_reach(len(out.distance))
-            _fill(coarse, mine, *args, torch.from_numpy(rb.coarse_hand_points[h]), limit, INSIDE_CHECK_M * rb.scale)
+            at = posed[:, torch.from_numpy(rb.coarse_hand_points[h])][frames]
+            _fill(coarse, mine, *args, at, limit, INSIDE_CHECK_M * rb.scale)
             limit = torch.minimum(limit, coarse.distance[mine] + 1e-9)
             _copy_reach(out, coarse, mine)
-        _fill(out, mine, *args, torch.from_numpy(points[h]), limit, INSIDE_CHECK_M * rb.scale)
+        at = posed[:, torch.from_numpy(points[h])][frames]  # the points' rows first: not every vertex of each frame
+        _fill(out, mine, *args, at, limit, INSIDE_CHECK_M * rb.scale)
 
 
 def _empty_reach(q_n: int) -> Reach:
@@ -378,14 +379,15 @@ def _copy_reach(out: Reach, other: Reach, rows: Tensor) -> None:
         other.distance[rows], other.hand_point[rows], other.surface_point[rows])  # fmt: skip
 
 
-def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, PosedBoxes], posed: Tensor,
-          frame: Tensor, pts: Tensor, max_distance: Tensor, inside_check: float) -> None:  # fmt: skip
-    """:func:`hand_reach` of the queries ``sel`` of one (part, hand): every sampled point searched, the nearest
-    written into ``out`` where one lies within the bound."""
+def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, PosedBoxes], frame: Tensor,
+          points: Tensor, max_distance: Tensor, inside_check: float) -> None:  # fmt: skip
+    """:func:`hand_reach` of the queries ``sel`` of one (part, hand), at the part's frames ``frame (q,)``: every
+    sampled point ``points (m, K, 3)`` (posed on the part's ``m`` frames) searched, the nearest written into
+    ``out`` where one lies within the bound."""
     local, boxes = posed_part
-    k = len(pts)
+    k = points.shape[1]
     qf = frame.repeat_interleave(k)
-    qp = posed[:, pts][frame].reshape(-1, 3)  # the points' rows first: not every vertex of each query's frame
+    qp = points[frame].reshape(-1, 3)
     d, face = closest_triangles(tree, boxes, qf, qp, max_distance.repeat_interleave(k))
     check = torch.nonzero(d < inside_check).flatten()
     if len(check):

@@ -76,12 +76,17 @@ class ClosedPart:
     cap_loops: list[np.ndarray]
     is_cap: np.ndarray
 
-    def posed(self, posed_vertices: np.ndarray) -> np.ndarray:
-        """Local vertex positions ``(..., N + L, 3)`` from the body's posed vertices ``(..., V, 3)``."""
-        own = posed_vertices[..., self.vertices, :]
+    def posed(self, posed_vertices: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
+        """Local vertex positions ``(..., N + L, 3)`` from the body's posed vertices ``(..., V, 3)``; ``frames
+        (k,)``: of those rows of posed vertices ``(F, V, 3)`` only, ``(k, N + L, 3)`` (the others' not copied)."""
+
+        def rows(idx: np.ndarray) -> np.ndarray:
+            return posed_vertices[..., idx, :] if frames is None else posed_vertices[frames[:, None], idx]
+
+        own = rows(self.vertices)
         if not self.cap_loops:
             return own
-        centres = np.stack([posed_vertices[..., loop, :].mean(axis=-2) for loop in self.cap_loops], axis=-2)
+        centres = np.stack([rows(loop).mean(axis=-2) for loop in self.cap_loops], axis=-2)
         return np.concatenate([own, centres], axis=-2)
 
 

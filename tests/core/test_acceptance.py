@@ -423,3 +423,14 @@ def test_head_bent_forward_sinks_the_chin_into_the_chest(shared_data: Path) -> N
     assert upright.head_count[0] == 0
     assert m.head_count[0] > 20 and 0.005 < m.head_max[0] < 0.05
     assert m.pen_count[0] == upright.pen_count[0]  # limbs untouched
+
+
+def test_a_closed_part_posed_on_some_frames_equals_those_frames_posed() -> None:
+    """``ClosedPart.posed(posed, frames)`` gathers only those frames' rows: bit-identical to posing them."""
+    body = box_body()
+    ab = acceptance_body(body, mapping_by_name(body.skeleton.names))
+    posed = np.random.default_rng(0).normal(size=(5, body.num_vertices, 3))
+    frames = np.array([3, 0, 3])
+    for part in ab.parts:
+        if part is not None:
+            assert np.array_equal(part.posed(posed, frames), part.posed(posed[frames]))
