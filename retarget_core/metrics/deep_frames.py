@@ -167,7 +167,14 @@ def _least_turned_depth(sdf: PartSDF, vertex: Tensor, at: Tensor, a: Tensor, b: 
         f = torch.nonzero(tested.any(dim=1)).flatten()
         r, t = mats[f, j, :, :3], mats[f, j, :, 3]
         local = ((points[f] - t[:, None, None]) @ r[:, None]).reshape(-1, 3)  # R^T (p - t), row-wise
-        d = -segment_distance(sdf, j, local).double().view(len(f), m_n, t_n)
+        lo = sdf.origin[j].double()
+        hi = lo + (sdf.size[j] - 1).double() * float(sdf.voxel[j])
+        near = ((local >= lo) & (local <= hi)).all(dim=-1)  # outside its grid a point is outside the segment
+        if not bool(near.any()):
+            continue
+        d = torch.zeros(len(local), dtype=torch.float64)  # (the grid reaches a margin wider than the blend)
+        d[near] = -segment_distance(sdf, j, local[near]).double()
+        d = d.view(len(f), m_n, t_n)
         rows = vertex[f]
         d = (d - sdf.rest_depth[rows, j].double()[..., None]).clamp_min(0.0) * sdf.geodesic_weight[rows, j].double()[
             ..., None
