@@ -47,6 +47,7 @@ LIMB_LINES: dict[str, tuple[str, str]] = {  # limb -> the joints its elbow or kn
 LARGEST_TURN_DEG = 70.0  # a larger turn of the elbow or knee is another pose (the swivel stage's largest)
 STEP_DEG = 5.0  # the turns read, this far apart
 SAMPLES = 64  # vertices of the limb near the deepest, and as many spread over it, read with it at each turn
+CHUNK = 256  # deep frames read together (their turned samples: about 25 MB)
 HELD_SEGMENTS = frozenset({"LeftHand", "RightHand", "LeftFoot", "RightFoot", "LeftToeBase", "RightToeBase"})
 
 
@@ -81,10 +82,11 @@ def deep_frames(character: Character, sdf: PartSDF, depths: VertexDepths, grot: 
     if not causes:
         return DeepFrames(deep)
     cause = torch.full((depths.num_frames,), -1, dtype=torch.long)
-    if len(frame):
-        held = _held(character, sdf, vertex, deep_m, grot[frame], gpos[frame], joint_of)
-        fold = foreign_weight(sdf.parts, vertex) > FOLD_WEIGHT
-        cause[frame] = torch.where(fold, CAUSES.index("fold"), torch.where(held, CAUSES.index("placement"), 0))
+    for s in range(0, len(frame), CHUNK):  # chunks of deep frames: a long clip's turned samples stay small
+        f, v = frame[s : s + CHUNK], vertex[s : s + CHUNK]
+        held = _held(character, sdf, v, deep_m, grot[f], gpos[f], joint_of)
+        fold = foreign_weight(sdf.parts, v) > FOLD_WEIGHT
+        cause[f] = torch.where(fold, CAUSES.index("fold"), torch.where(held, CAUSES.index("placement"), 0))
     return DeepFrames(deep, cause)
 
 

@@ -71,6 +71,23 @@ def test_deep_frames_are_counted_and_split_by_cause(average_body) -> None:  # ty
             assert _every_turn_floor(ch, mapping, sdf, grot[f], gpos[f], v, side) > 0.01 * ch.height / 1.8
 
 
+def test_deep_frames_read_in_chunks_give_the_same_causes(average_body, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Deep frames read one at a time (a long clip's chunks) name the same causes as read together."""
+    from retarget_core.metrics import deep_frames as module
+
+    ch, mapping, sdf = average_body
+    poses = [arm_swung(ch, mapping, side, deg) for side, deg in (("Left", -60.0), ("Right", 60.0), ("Left", -45.0))]
+    grot = torch.stack([g for g, _ in poses])
+    gpos = torch.stack([p for _, p in poses])
+    lr, lt = kinematics.global_to_local(ch.skeleton.parents, grot, gpos)
+    motion = Motion(ch.skeleton, 30.0, lr, lt, "arms_in")
+    together = measure_clip(ch, mapping, sdf, motion).deep
+    monkeypatch.setattr(module, "CHUNK", 1)
+    apart = measure_clip(ch, mapping, sdf, motion).deep
+    assert together is not None and apart is not None and together.cause is not None and apart.cause is not None
+    assert bool(together.deep.all()) and torch.equal(together.cause, apart.cause)
+
+
 def _every_turn_floor(ch, mapping, sdf, grot, gpos, vertex: int, side: str) -> float:  # type: ignore[no-untyped-def]
     """The floor of :func:`_least_turned_depth` read over every vertex of the arm that turns, at one frame."""
     parts = sdf.parts
