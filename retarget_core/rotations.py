@@ -34,6 +34,12 @@ def inv(q: Tensor) -> Tensor:
     return roma.quat_conjugation(q)
 
 
+def axis_angle(axis: Tensor, angle: Tensor) -> Tensor:
+    """Quaternions ``(..., 4)`` from unit axes ``(..., 3)`` and angles ``(...)``."""
+    half = 0.5 * angle
+    return torch.cat([axis * torch.sin(half)[..., None], torch.cos(half)[..., None]], dim=-1)
+
+
 def apply(q: Tensor, v: Tensor) -> Tensor:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``, shapes broadcast."""
     batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from retarget_core import kinematics
+from retarget_core import rotations as rot
 from retarget_core.body_parts import CLUSTERS, BodyParts
 from retarget_core.character import Character
 from retarget_core.energy.sdf import PartSDF, segment_distance, segment_matrices
@@ -191,11 +192,9 @@ def _least_turned_depth(sdf: PartSDF, vertex: Tensor, at: Tensor, a: Tensor, b: 
 
 
 def _turned(v: Tensor, axis: Tensor, angles: Tensor) -> Tensor:
-    """``(K, T, 3)`` vectors ``v (K, 3)`` turned about the unit ``axis (K, 3)`` by each of ``angles (T,)``
-    (Rodrigues' formula)."""
-    cos, sin = angles.cos()[None, :, None], angles.sin()[None, :, None]
-    along = (v * axis).sum(-1, keepdim=True)[:, None] * axis[:, None]
-    return v[:, None] * cos + torch.cross(axis, v, dim=-1)[:, None] * sin + along * (1.0 - cos)
+    """``(K, T, 3)`` vectors ``v (K, 3)`` turned about the unit ``axis (K, 3)`` by each of ``angles (T,)``."""
+    turn = rot.axis_angle(axis[:, None, :], angles[None, :].expand(len(axis), -1))  # (K, T, 4)
+    return rot.apply(turn, v[:, None, :])
 
 
 def _line_distance(rel: Tensor, axis: Tensor) -> Tensor:

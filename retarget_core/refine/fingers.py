@@ -67,7 +67,6 @@ from retarget_core.refine.finger_depth import (
     palms,
     sinking,
 )
-from retarget_core.refine.two_bone_ik import axis_angle
 from retarget_core.skeleton import Skeleton
 
 REFERENCE_HEIGHT_M = 1.80
@@ -209,8 +208,8 @@ def turned(local: Tensor, grot: Tensor, chains: list[FingerChain], level: int, a
             continue
         j = chain.joints[level]
         back = rot.inv(grot[:, j])  # world axes into the joint's own frame: G' = R_flex R_spread G
-        flex = axis_angle(rot.apply(back, axes[0][:, c]), angle[:, c, 0])
-        spread = axis_angle(rot.apply(back, axes[1][:, c]), angle[:, c, 1])
+        flex = rot.axis_angle(rot.apply(back, axes[0][:, c]), angle[:, c, 0])
+        spread = rot.axis_angle(rot.apply(back, axes[1][:, c]), angle[:, c, 1])
         q = rot.normalize(rot.mul(local[:, j], rot.mul(flex, spread)))
         out[:, j] = torch.where((angle[:, c] != 0).any(-1, keepdim=True), q, local[:, j])
     return out

@@ -30,12 +30,6 @@ def _angle(u: Tensor, v: Tensor) -> Tensor:
     return torch.acos((_unit(u) * _unit(v)).sum(-1).clamp(-1.0, 1.0))
 
 
-def axis_angle(axis: Tensor, angle: Tensor) -> Tensor:
-    """Quaternions ``(..., 4)`` from unit axes ``(..., 3)`` and angles ``(...)``."""
-    half = 0.5 * angle
-    return torch.cat([axis * torch.sin(half)[..., None], torch.cos(half)[..., None]], dim=-1)
-
-
 def _between(u: Tensor, v: Tensor) -> Tensor:
     """Shortest-arc quaternions ``(..., 4)`` taking directions ``u`` to ``v`` (antiparallel: a half turn about
     an axis perpendicular to ``u``)."""
@@ -106,7 +100,7 @@ def _solve(
     knee_angle_0 = _angle(-thigh, shin)
     cos_knee = (l_thigh**2 + l_shin**2 - reach**2) / (2.0 * l_thigh * l_shin)
     knee_angle_1 = torch.acos(cos_knee.clamp(-1.0, 1.0))
-    r_knee = axis_angle(hinge, knee_angle_1 - knee_angle_0)
+    r_knee = rot.axis_angle(hinge, knee_angle_1 - knee_angle_0)
     ankle_1 = knee + rot.apply(r_knee, shin)
     # Swing the whole chain about the hip so hip->ankle points at the target.
     swing = _between(ankle_1 - hip, target - hip)
@@ -117,4 +111,4 @@ def _solve(
     return new_hip, new_knee, knee_2, ankle_2
 
 
-__all__ = ["axis_angle", "two_bone_ik"]
+__all__ = ["two_bone_ik"]
