@@ -105,13 +105,16 @@ def _held(character: Character, sdf: PartSDF, vertex: Tensor, deep_m: float, gro
     ``gpos[k]``, is a hand or foot vertex, or its frame stays deeper than ``deep_m`` however the limb turns."""
     parts = sdf.parts
     seg = parts.vertex_part[vertex]
-    out = torch.tensor([parts.names[s] in HELD_SEGMENTS for s in seg.tolist()], dtype=torch.bool)
+    held_segment = torch.tensor([n in HELD_SEGMENTS for n in parts.names], dtype=torch.bool)  # (S,)
+    out = held_segment[seg]
+    segment_cluster = torch.tensor(parts.cluster, dtype=torch.long)  # (S,)
     mats = segment_matrices(character, parts, grot, gpos).double()  # (K, S, 3, 4)
     for limb, (root, end) in LIMB_LINES.items():
-        mine = torch.tensor([CLUSTERS[parts.cluster[s]] == limb for s in seg.tolist()], dtype=torch.bool) & ~out
+        mine = (segment_cluster[seg] == CLUSTERS.index(limb)) & ~out
         if root not in joint_of or end not in joint_of or not bool(mine.any()):
             continue
-        rows = _limb_samples(character, parts, vertex[mine], CLUSTERS.index(limb))  # (k, M)
+        turning = ~held_segment & (segment_cluster == CLUSTERS.index(limb))  # (S,) the limb's segments that turn
+        rows = _limb_samples(character, parts, vertex[mine], turning)  # (k, M)
         at = _posed_at(character, rows, grot[mine], gpos[mine])
         a, b = gpos[mine, joint_of[root]].double(), gpos[mine, joint_of[end]].double()
         least = _least_turned_depth(sdf, rows, at, a, b, mats[mine], CLUSTERS.index(limb))
@@ -119,13 +122,12 @@ def _held(character: Character, sdf: PartSDF, vertex: Tensor, deep_m: float, gro
     return out
 
 
-def _limb_samples(character: Character, parts: BodyParts, vertex: Tensor, limb: int) -> Tensor:
-    """``(K, 1 + 2 SAMPLES)`` each vertex, then :data:`SAMPLES` body vertices of cluster ``limb`` that turn with it
-    (not the hand's or foot's) nearest it at rest and :data:`SAMPLES` evenly through the others."""
+def _limb_samples(character: Character, parts: BodyParts, vertex: Tensor, turning: Tensor) -> Tensor:
+    """``(K, 1 + 2 SAMPLES)`` each vertex, then :data:`SAMPLES` body vertices of the segments ``turning (S,)``
+    (bool: its limb's that turn with it, not the hand's or foot's) nearest it at rest and :data:`SAMPLES` evenly
+    through the others."""
     body = parts.body if parts.body is not None else torch.ones(len(parts.vertex_part), dtype=torch.bool)
-    turns = torch.tensor([parts.cluster[s] == limb and parts.names[s] not in HELD_SEGMENTS
-                          for s in range(parts.num_parts)], dtype=torch.bool)  # fmt: skip
-    limb_vertices = torch.nonzero(turns[parts.vertex_part] & body).flatten()
+    limb_vertices = torch.nonzero(turning[parts.vertex_part] & body).flatten()
     spread = limb_vertices[torch.linspace(0, len(limb_vertices) - 1, SAMPLES).round().long()]
     rest = character.vertices[limb_vertices]
     near_n = min(SAMPLES, len(limb_vertices))
