@@ -50,9 +50,12 @@ class HandDistanceParams:
     # Vertices this much farther than the closest one are also evaluated exactly: the median hand edge (5 mm on
     # the MakeHuman hand), so the inside test reaches the vertices of a hand triangle crossing the surface.
     slack_m: float = 0.005
-    # Rest-pose voxel edge of the hand and triangle chunks (efficiency only, results do not depend on it).
-    hand_chunk_m: float = 0.03
-    triangle_chunk_m: float = 0.06
+    # Rest-pose voxel edge of the hand and triangle chunks in median edges of the hands' and the parts' triangles
+    # (efficiency only, results do not depend on it): chunks of about as many members on a fine mesh as on a coarse
+    # one (on a MakeHuman body about 3 and 4 cm; a finer mesh's larger spheres pruned nothing near a contact: with
+    # 3 and 6 cm the large character's distances took 2.2 x as long, docs/results.md).
+    hand_chunk_edges: float = 6.0
+    triangle_chunk_edges: float = 4.0
     chunk_members: int = 32
     # Triangles within this of a vertex's closest distance share its closest point (a face, edge or vertex).
     tie_m: float = 1e-7
@@ -151,6 +154,14 @@ def _chunks(points: Tensor, label: Tensor, size: float, members: int) -> tuple[T
     return cl.members, cl.part
 
 
+def median_edge(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The median edge length of the triangles ``faces (T, 3)`` over ``vertices (V, 3)`` (0 without any)."""
+    if len(faces) == 0:
+        return 0.0
+    corners = vertices[faces]
+    return float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1)))
+
+
 def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
     t = v[f]
     return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
@@ -205,14 +216,18 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
     hv = torch.cat(hand_vertices)
     hl = torch.cat([torch.full((len(x),), i, dtype=torch.long) for i, x in enumerate(hand_vertices)])
     if len(hv):
-        members, chunk_hand = _chunks(vertices[hv], hl, params.hand_chunk_m * s, params.chunk_members)
+        hand_faces = faces[np.isin(faces, hv.numpy()).all(axis=1)]
+        hand_edge = median_edge(v_np, hand_faces) or 0.005 * s
+        members, chunk_hand = _chunks(vertices[hv], hl, params.hand_chunk_edges * hand_edge, params.chunk_members)
         hand_chunks = torch.where(members >= 0, hv[members.clamp_min(0)], members)
     else:
         hand_chunks, chunk_hand = torch.full((0, 1), -1, dtype=torch.long), torch.zeros(0, dtype=torch.long)
     chunks_of_hand = _padded([np.nonzero(chunk_hand.numpy() == i)[0] for i in range(len(hands))])
     # Triangle chunks by rest centroid.
     centroid = torch.from_numpy(ext[faces_t.numpy()].mean(1))
-    tri_chunks, tri_chunk_part = _chunks(centroid, face_part, params.triangle_chunk_m * s, params.chunk_members)
+    part_edge = median_edge(v_np, faces[~np.isin(faces, hv.numpy()).all(axis=1)]) or 0.01 * s
+    tri_chunks, tri_chunk_part = _chunks(centroid, face_part, params.triangle_chunk_edges * part_edge,
+                                         params.chunk_members)  # fmt: skip
     tri_chunk_vertices = _padded(
         [np.unique(faces_t.numpy()[m[m >= 0]]) for m in tri_chunks.numpy()]
     )

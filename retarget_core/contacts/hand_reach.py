@@ -444,12 +444,17 @@ class MovedPoses:
     def __len__(self) -> int:
         return len(self.new) // len(self.base)
 
-    def posed(self, first: int, count: int) -> Tensor:
-        """``(count * m, V, 3)`` the frames moved ``count`` ways from way ``first`` on, way after way."""
-        m = len(self.base)
-        out = self.base.repeat(count, 1, 1)
-        out[:, self.rows] = self.new[first * m : (first + count) * m].to(out.dtype)
-        return out
+    def ways(self, group: int) -> Iterator[tuple[int, Tensor]]:
+        """``(first, posed (count * m, V, 3))``: the frames moved ``count`` ways from way ``first`` on, way after
+        way, ``group`` ways at a time (fewer in the last). One buffer serves every group (only the moved rows are
+        written again), so each ``posed`` is valid until the next is yielded."""
+        m, ways = len(self.base), len(self)
+        buffer = self.base.repeat(min(group, ways), 1, 1)
+        for first in range(0, ways, group):
+            count = min(group, ways - first)
+            out = buffer[: count * m]
+            out[:, self.rows] = self.new[first * m : (first + count) * m].to(out.dtype)
+            yield first, out
 
 
 def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Motion, frames: Tensor,

@@ -186,9 +186,9 @@ def turn_depths(ctx: RefineContext, rb: ReachBody, motion: Motion, arms: list[Ar
     cap = ARM_DEPTH_CAP_M * rb.scale
     depth, volume = [], []
     group = max(1, chunk // m)  # turns measured together
-    for first in range(0, len(turns), group):
-        count = min(group, len(turns) - first)
-        parts = MovedParts(rb, poses.posed(first, count), base, poses.moved)
+    for _, posed in poses.ways(group):
+        count = len(posed) // m
+        parts = MovedParts(rb, posed, base, poses.moved)
         d, v = arm_search_figures(parts, arm.side, cap, legs_on.repeat(count))
         depth.append(d.view(count, m))
         volume.append(v.view(count, m))

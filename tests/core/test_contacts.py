@@ -455,3 +455,30 @@ def test_hand_part_distances_with_a_cutoff_per_group() -> None:
     others = torch.ones(full.distance.shape, dtype=torch.bool)
     others[:, 0, torso] = False
     assert bool(torch.isinf(got.distance[others]).all())  # cutoff 0: not measured
+
+
+
+def test_hand_part_distances_do_not_depend_on_the_chunks(samples: Path) -> None:
+    """Chunk sizes are efficiency only: coarse and fine chunks give the same distances, inside flags and closest
+    pairs. On these frames of the sample clip a hand vertex's closest point lies on an edge two triangles share,
+    and the pair's body vertex read from the first of them walked differed with the chunks (now the lowest index)."""
+    from retarget_core.contacts.hand_distance import HandDistanceParams, hand_part_geometry
+    from retarget_core.jobs import JobInputs
+    from retarget_core.options import RetargetOptions
+    from retarget_core.pipeline import prepare
+
+    inputs = JobInputs(samples / "motions" / "007_03.bvh", str(samples / "characters" / "mh_male_bulky.glb"),
+                       options=RetargetOptions(fps=30.0))  # fmt: skip
+    prepared = prepare(inputs)
+    ch, parts = prepared.target.character, prepared.assets.parts
+    posed = ch.pose_vertices(*prepared.before.global_transforms())[[12, 15, 82, 97]].double()
+    results = []
+    for hand_edges, triangle_edges in ((6.0, 4.0), (2.0, 12.0), (12.0, 2.0)):
+        params = HandDistanceParams(hand_chunk_edges=hand_edges, triangle_chunk_edges=triangle_edges)
+        geom = hand_part_geometry(parts, ch.vertices, ch.height, params)
+        results.append(hand_part_distances(ch, parts, posed, params=params, geometry=geom))
+    assert int(torch.isfinite(results[0].distance).sum()) >= 4
+    for other in results[1:]:
+        for a, b in ((results[0].distance, other.distance), (results[0].inside, other.inside),
+                     (results[0].pairs, other.pairs), (results[0].pair_distance, other.pair_distance)):  # fmt: skip
+            assert torch.equal(a, b)
