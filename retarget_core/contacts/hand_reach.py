@@ -15,6 +15,7 @@ to posing and refitting everything.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -27,6 +28,7 @@ from retarget_core import kinematics
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.energy.sdf import vertex_areas
+from retarget_core.geometry.bvh_kernels import indexed_bounds, run_in_blocks
 from retarget_core.geometry.closest_point import closest_points
 from retarget_core.geometry.triangle_bvh import (
     PosedBoxes,
@@ -192,8 +194,13 @@ class PosedParts:
 
     def _made_box(self, name: str, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
         """:meth:`box_of`, measured on :attr:`posed`."""
-        own = self.posed[:, torch.from_numpy(vertices)]
-        return own.amin(dim=1)[:, None], own.amax(dim=1)[:, None]
+        posed = self.posed.contiguous()
+        lo, hi = posed.new_empty(len(posed), 1, 3), posed.new_empty(len(posed), 1, 3)
+        if len(vertices) == 0:
+            return lo.fill_(math.inf), hi.fill_(-math.inf)
+        arrays = posed.numpy(), np.ascontiguousarray(vertices, dtype=np.int64), lo.numpy()[:, 0], hi.numpy()[:, 0]
+        run_in_blocks(lambda b: indexed_bounds(arrays[0][b], arrays[1], arrays[2][b], arrays[3][b]), len(posed), 8)
+        return lo, hi
 
     def _closed(self, name: str) -> ClosedPart:
         """The body's part ``name`` (it has it)."""

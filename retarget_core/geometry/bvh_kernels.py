@@ -255,6 +255,18 @@ def refit_boxes(vertices: np.ndarray, faces: np.ndarray, leaf_faces: np.ndarray,
                 hi[s, node, x] = max(hi[s, a, x], hi[s, b, x])
 
 
+@_compiled
+def indexed_bounds(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    """The box of the rows ``index (N,)`` of each frame of ``posed (n, V, 3)`` into ``lo, hi (n, 3)``, without
+    gathering them (a part's box per frame: a gather copied tens of MB per chunk on a large body)."""
+    for f in range(posed.shape[0]):
+        lx, ly, lz, hx, hy, hz = np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf
+        for i in index:
+            x, y, z = posed[f, i, 0], posed[f, i, 1], posed[f, i, 2]
+            lx, ly, lz, hx, hy, hz = min(lx, x), min(ly, y), min(lz, z), max(hx, x), max(hy, y), max(hz, z)
+        lo[f, 0], lo[f, 1], lo[f, 2], hi[f, 0], hi[f, 1], hi[f, 2] = lx, ly, lz, hx, hy, hz
+
+
 def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MIN_BLOCK) -> None:
     """``walk(block)`` over ``count`` items (queries, frames) in blocks, one per torch thread (the walks release
     the GIL); a block holds at least ``min_block`` items."""
@@ -267,4 +279,4 @@ def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MI
         list(pool.map(walk, [slice(s, s + step) for s in range(0, count, step)]))
 
 
-__all__ = ["closest_point", "closest_walk", "refit_boxes", "run_in_blocks", "triangle_distance", "winding_walk"]
+__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "run_in_blocks", "triangle_distance", "winding_walk"]

@@ -152,3 +152,15 @@ def test_the_compiled_refit_gives_the_tensor_refits_boxes(leaf_size: int) -> Non
         lo, hi = tb._parent_boxes(lo, hi)
         here = compiled.level(tree.depth - 1 - level)
         assert torch.equal(compiled.lo[:, here], lo) and torch.equal(compiled.hi[:, here], hi)
+
+
+def test_indexed_bounds_equal_the_gathered_min_and_max() -> None:
+    """The compiled box of some rows of each frame equals min and max over the gathered rows."""
+    from retarget_core.geometry.bvh_kernels import indexed_bounds
+
+    posed = torch.randn(7, 200, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    index = np.array([5, 0, 199, 42, 42, 17])
+    lo, hi = np.empty((7, 3)), np.empty((7, 3))
+    indexed_bounds(posed.numpy(), index, lo, hi)
+    assert np.array_equal(lo, posed[:, index].amin(dim=1).numpy())
+    assert np.array_equal(hi, posed[:, index].amax(dim=1).numpy())
