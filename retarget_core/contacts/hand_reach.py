@@ -141,8 +141,8 @@ _CACHE: OrderedDict[str, ReachBody] = OrderedDict()
 
 
 class PosedParts:
-    """The parts of one chunk of posed frames ``posed (n, V, 3)``: each part's posed closed mesh, its refit tree
-    boxes and the box of its own vertices, made the first time a part is asked for."""
+    """The parts of one chunk of posed frames ``posed (n, W, 3)`` (:func:`posed_for_reach`): each part's posed
+    closed mesh, its refit tree boxes and the box of its own vertices, made the first time a part is asked for."""
 
     def __init__(self, rb: ReachBody, posed: Tensor) -> None:
         self.rb, self.posed = rb, posed.double()
@@ -244,7 +244,7 @@ class PosedParts:
 
 
 class MovedParts(PosedParts):
-    """:class:`PosedParts` of the ``m`` frames of ``base`` moved one or more ways (``posed (n, V, 3)``, ``n`` a
+    """:class:`PosedParts` of the ``m`` frames of ``base`` moved one or more ways (``posed (n, W, 3)``, ``n`` a
     multiple of ``m``: frame ``i`` is base frame ``i % m`` moved), where only the rows of the body vertices
     ``moved (V,)`` (bool) differ from the base's. What lies on none of them is the base's (a part's boxes are
     shared: :attr:`PosedBoxes.rows`); a part on a few of them is refit from the base's boxes where they moved
@@ -325,7 +325,7 @@ def _with_frames(some: PosedBoxes | None, new: PosedBoxes, frames: Tensor, n: in
 
 def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,
                coarse: bool = False) -> Reach:  # fmt: skip
-    """The :class:`Reach` of queries (``frame (Q,)`` into ``posed (n, V, 3)``, ``hand (Q,)`` into :data:`HANDS`,
+    """The :class:`Reach` of queries (``frame (Q,)`` into ``posed (n, W, 3)``, ``hand (Q,)`` into :data:`HANDS`,
     ``part (Q,)`` into :data:`PARTS`), each searched up to its ``bound (Q,)``, from the hands' sampled points
     (``coarse``: the coarse ones). Queries whose hand's box lies farther than the bound from the part's box are
     not searched; each part's tree is refit on the frames queried."""
@@ -416,20 +416,23 @@ def _fill(out: Reach, sel: Tensor, tree: TriangleBVH, posed_part: tuple[Tensor, 
 
 
 def posed_for_reach(rb: ReachBody, character: Character, motion: Motion, frames: Tensor) -> Tensor:
-    """``(n, V, 3)`` the body posed at clip ``frames (n,)``, only the vertices :func:`hand_reach` reads (the
-    others stay zero)."""
+    """``(n, W, 3)`` the body posed at clip ``frames (n,)``: the rows up to the last vertex the measures read
+    (:meth:`ReachBody.read_vertices`; ``W <= V``: accessories stored after the body are left out), only the read
+    ones posed (the others zero)."""
     read = torch.from_numpy(rb.read_vertices())
+    width = int(read[-1]) + 1 if len(read) else 0
     with torch.no_grad():
         grot, gpos = kinematics.forward_kinematics(motion.skeleton.parents, motion.rotations[frames],
                                                    motion.translations[frames])  # fmt: skip
-        posed = torch.zeros(len(frames), character.num_vertices, 3, dtype=torch.float64)  # as the measures read it
+        make = torch.empty if len(read) == width else torch.zeros  # every row read and written: no zero fill
+        posed = make(len(frames), width, 3, dtype=torch.float64)  # double, as the measures read it
         posed[:, read] = character.pose_rows(read, grot, gpos).to(posed.dtype)
     return posed
 
 
 def posed_chunks(rb: ReachBody, character: Character, motion: Motion, frames: Tensor,
                  most: int = 64) -> Iterator[tuple[Tensor, Tensor]]:  # fmt: skip
-    """``(fr (m,), posed (m, V, 3))``: :func:`posed_for_reach` of clip ``frames (n,)``, :meth:`ReachBody.chunk_frames`
+    """``(fr (m,), posed (m, W, 3))``: :func:`posed_for_reach` of clip ``frames (n,)``, :meth:`ReachBody.chunk_frames`
     of ``most`` frames at a time."""
     chunk = rb.chunk_frames(most)
     for s in range(0, len(frames), chunk):
@@ -439,7 +442,7 @@ def posed_chunks(rb: ReachBody, character: Character, motion: Motion, frames: Te
 
 @dataclass
 class MovedPoses:
-    """:func:`posed_for_reach` of ``T`` ways of moving the same ``m`` frames, made from ``base (m, V, 3)``, those
+    """:func:`posed_for_reach` of ``T`` ways of moving the same ``m`` frames, made from ``base (m, W, 3)``, those
     frames before the moves (double, as :class:`PosedParts` holds it): the rows ``rows (R,)`` posed again,
     ``new (T * m, R, 3)``, way after way; ``moved (V,)`` (bool) those rows (the others are the base's)."""
 
@@ -452,7 +455,7 @@ class MovedPoses:
         return len(self.new) // len(self.base)
 
     def ways(self, group: int) -> Iterator[tuple[int, Tensor]]:
-        """``(first, posed (count * m, V, 3))``: the frames moved ``count`` ways from way ``first`` on, way after
+        """``(first, posed (count * m, W, 3))``: the frames moved ``count`` ways from way ``first`` on, way after
         way, ``group`` ways at a time (fewer in the last). One buffer serves every group (only the moved rows are
         written again), so each ``posed`` is valid until the next is yielded."""
         m, ways = len(self.base), len(self)
@@ -467,7 +470,7 @@ class MovedPoses:
 def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Motion, frames: Tensor,
                 posed: Tensor) -> MovedPoses:  # fmt: skip
     """:func:`posed_for_reach` of ``moved``, ``T * m`` frames: clip ``frames (m,)`` of ``motion`` moved ``T``
-    ways, one after another, from ``posed (m, V, 3)``, those frames of ``motion`` posed: only the vertices
+    ways, one after another, from ``posed (m, W, 3)``, those frames of ``motion`` posed: only the vertices
     skinned to a joint whose world transform moved are posed again (the others' rows are the same products of
     the same numbers)."""
     read = torch.from_numpy(rb.read_vertices())
