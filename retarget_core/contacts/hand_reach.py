@@ -443,27 +443,32 @@ def posed_chunks(rb: ReachBody, character: Character, motion: Motion, frames: Te
 @dataclass
 class MovedPoses:
     """:func:`posed_for_reach` of ``T`` ways of moving the same ``m`` frames, made from ``base (m, W, 3)``, those
-    frames before the moves (double, as :class:`PosedParts` holds it): the rows ``rows (R,)`` posed again,
-    ``new (T * m, R, 3)``, way after way; ``moved (V,)`` (bool) those rows (the others are the base's)."""
+    frames before the moves (double, as :class:`PosedParts` holds it): the rows ``rows (R,)`` posed again from
+    the joints' world transforms ``grot (T * m, J, 4)``, ``gpos (T * m, J, 3)`` (way after way) when their ways
+    are asked for; ``moved (V,)`` (bool) those rows (the others are the base's)."""
 
+    character: Character
     base: Tensor
     rows: Tensor
-    new: Tensor
+    grot: Tensor
+    gpos: Tensor
     moved: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.new) // len(self.base)
+        return len(self.grot) // len(self.base)
 
     def ways(self, group: int) -> Iterator[tuple[int, Tensor]]:
         """``(first, posed (count * m, W, 3))``: the frames moved ``count`` ways from way ``first`` on, way after
         way, ``group`` ways at a time (fewer in the last). One buffer serves every group (only the moved rows are
-        written again), so each ``posed`` is valid until the next is yielded."""
+        posed and written again, a group at a time: all ``T`` ways at once held a few hundred MB on a large
+        body), so each ``posed`` is valid until the next is yielded."""
         m, ways = len(self.base), len(self)
         buffer = self.base.repeat(min(group, ways), 1, 1)
         for first in range(0, ways, group):
             count = min(group, ways - first)
-            out = buffer[: count * m]
-            out[:, self.rows] = self.new[first * m : (first + count) * m].to(out.dtype)
+            out, at = buffer[: count * m], slice(first * m, (first + count) * m)
+            with torch.no_grad():
+                out[:, self.rows] = self.character.pose_rows(self.rows, self.grot[at], self.gpos[at]).to(out.dtype)
             yield first, out
 
 
@@ -481,10 +486,9 @@ def posed_moved(rb: ReachBody, character: Character, moved: Motion, motion: Moti
         same = (grot.view(-1, *brot.shape) == brot).all(dim=-1) & (gpos.view(-1, *bpos.shape) == bpos).all(dim=-1)
         joints = ~same.flatten(0, 1).all(dim=0)  # (J,) the joints moved on some frame
         rows = read[(character.dense_weights()[read][:, joints] != 0).any(dim=1)]
-        new = character.pose_rows(rows, grot, gpos).to(torch.float64)  # posed_for_reach's dtype
     mask = np.zeros(character.num_vertices, dtype=bool)
     mask[rows.numpy()] = True
-    return MovedPoses(posed, rows, new, mask)
+    return MovedPoses(character, posed, rows, grot, gpos, mask)
 
 
 __all__ = ["HAND_CELL_M", "build_reach_body", "PosedParts", "Reach", "ReachBody", "hand_reach", "one_per_cell",
