@@ -49,7 +49,8 @@ from retarget_core.metrics.acceptance_body import (
 )
 from retarget_core.motion import Motion
 
-BOX_BUDGET_BYTES = 320 * 2**20  # a chunk's part trees: 277 MB at 64 frames on the bulky sample, 1.1 GB on a 95k-vertex body
+CHUNK_BUDGET_BYTES = 160 * 2**20  # a chunk's part trees and posed rows: 86 MB at 64 frames on the bulky sample, 342
+# MB on the 95k-vertex large character (which then poses 29 frames at a time: its 1,000-frame job peaked at 1.59 GB)
 HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
 COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
 ARM_CELL_M = 0.02  # the arms' penetration check: one arm vertex per cell of this size, and every hand vertex
@@ -75,10 +76,15 @@ class ReachBody:
     scale: float  # body lengths per length at 1.80 m
 
     def chunk_frames(self, most: int) -> int:
-        """Frames to pose together, at most ``most``: as many as keep every part's tree boxes of a chunk (low and
-        high corners of each node, float64) within :data:`BOX_BUDGET_BYTES`."""
-        per_frame = sum(tree.box_bytes() for tree in self.trees.values())
-        return max(1, min(most, BOX_BUDGET_BYTES // max(per_frame, 1)))
+        """Frames to pose together, at most ``most``: as many as keep a chunk's :meth:`frame_bytes` within
+        :data:`CHUNK_BUDGET_BYTES`."""
+        return max(1, min(most, CHUNK_BUDGET_BYTES // max(self.frame_bytes(), 1)))
+
+    def frame_bytes(self) -> int:
+        """Bytes one posed frame holds: every part's tree boxes (low and high corners of each node, float64) and
+        its :func:`posed_for_reach` rows."""
+        read = self.read_vertices()
+        return sum(tree.box_bytes() for tree in self.trees.values()) + 24 * (int(read[-1]) + 1 if len(read) else 0)
 
     def read_vertices(self) -> np.ndarray:
         """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's."""

@@ -202,8 +202,8 @@ def test_a_body_without_a_mapped_forearm_is_left_as_it_is() -> None:
 
 
 def test_part_trees_posed_in_smaller_chunks_give_the_same_stage(skinny, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """A body whose part trees would not fit the box budget is posed a few frames at a time (a 95k-vertex body
-    held 1.1 GB of boxes per 64 frames): the hand contact stage gives the same motion as in whole chunks."""
+    """A body whose part trees and posed rows would not fit the chunk budget is posed a few frames at a time (a
+    95k-vertex body held 342 MB per 64 frames): the hand contact stage gives the same motion as in whole chunks."""
     import retarget_core.contacts.hand_reach as hr
 
     ch, mapping, rb = skinny
@@ -213,7 +213,8 @@ def test_part_trees_posed_in_smaller_chunks_give_the_same_stage(skinny, monkeypa
     whole = hand_contacts.run(_context(ch, mapping, source, target), target)
     assert rb.chunk_frames(64) == 64
     frame_bytes = 48 * sum((2 << t.depth) - 1 for t in rb.trees.values())  # every part's boxes of one frame
-    monkeypatch.setattr(hr, "BOX_BUDGET_BYTES", 7 * frame_bytes)
+    frame_bytes += 24 * (int(rb.read_vertices()[-1]) + 1)  # and its posed rows
+    monkeypatch.setattr(hr, "CHUNK_BUDGET_BYTES", 7 * frame_bytes)
     assert rb.chunk_frames(64) == 7
     small = hand_contacts.run(_context(ch, mapping, source, target), target)
     assert whole.report["frames_changed"] > 0
