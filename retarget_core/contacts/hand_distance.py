@@ -215,9 +215,9 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
         hand_vertices.append(parts.part_vertices(seg) if seg is not None else torch.zeros(0, dtype=torch.long))
     hv = torch.cat(hand_vertices)
     hl = torch.cat([torch.full((len(x),), i, dtype=torch.long) for i, x in enumerate(hand_vertices)])
+    on_hand = np.isin(faces, hv.numpy()).all(axis=1)  # (T,) the hands' own triangles
     if len(hv):
-        hand_faces = faces[np.isin(faces, hv.numpy()).all(axis=1)]
-        hand_edge = median_edge(v_np, hand_faces) or 0.005 * s
+        hand_edge = median_edge(v_np, faces[on_hand]) or 0.005 * s
         members, chunk_hand = _chunks(vertices[hv], hl, params.hand_chunk_edges * hand_edge, params.chunk_members)
         hand_chunks = torch.where(members >= 0, hv[members.clamp_min(0)], members)
     else:
@@ -225,7 +225,7 @@ def hand_part_geometry(parts: BodyParts, vertices: Tensor, height: float | None 
     chunks_of_hand = _padded([np.nonzero(chunk_hand.numpy() == i)[0] for i in range(len(hands))])
     # Triangle chunks by rest centroid.
     centroid = torch.from_numpy(ext[faces_t.numpy()].mean(1))
-    part_edge = median_edge(v_np, faces[~np.isin(faces, hv.numpy()).all(axis=1)]) or 0.01 * s
+    part_edge = median_edge(v_np, faces[~on_hand]) or 0.01 * s
     tri_chunks, tri_chunk_part = _chunks(centroid, face_part, params.triangle_chunk_edges * part_edge,
                                          params.chunk_members)  # fmt: skip
     tri_chunk_vertices = _padded(

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -74,6 +74,7 @@ class ReachBody:
     leg_area: tuple[Tensor, ...]
     trees: dict[str, TriangleBVH]
     scale: float  # body lengths per length at 1.80 m
+    _read: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)  # read_vertices, once
 
     def chunk_frames(self, most: int) -> int:
         """Frames to pose together, at most ``most``: as many as keep a chunk's :meth:`frame_bytes` within
@@ -87,10 +88,13 @@ class ReachBody:
         return sum(tree.box_bytes() for tree in self.trees.values()) + 24 * (int(read[-1]) + 1 if len(read) else 0)
 
     def read_vertices(self) -> np.ndarray:
-        """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's."""
-        own = [part.vertices for part in self.body.parts if part is not None]
-        hands = [*self.hand_points, *self.coarse_hand_points]
-        return np.unique(np.concatenate([*hands, *self.arm_points, *self.leg_points, *own]).astype(np.int64))
+        """Sorted body vertices the measures pose: the sampled hand and arm vertices and every part's (made once:
+        every posed chunk asks)."""
+        if self._read is None:
+            own = [part.vertices for part in self.body.parts if part is not None]
+            hands = [*self.hand_points, *self.coarse_hand_points]
+            self._read = np.unique(np.concatenate([*hands, *self.arm_points, *self.leg_points, *own]).astype(np.int64))
+        return self._read
 
 
 def one_per_cell(rest: np.ndarray, idx: np.ndarray, cell: float) -> np.ndarray:
