@@ -9,7 +9,8 @@ stage that made it.
 The clip is sent as a GLB on the average body and resampled to 30 fps, as the held-out evaluation does (the
 copy's and the last stage's rows are that evaluation's figures for the case); ``--frames`` (default 100) caps
 its length. Optional ``--json`` writes the rows; ``--collisions KEY=VALUE`` (repeatable) runs the collision stage
-with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee_weight=0.5``).
+with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee_weight=0.5``, or one entry of
+a dict setting: ``end_effectors.LeftHand=2``).
 """
 
 from __future__ import annotations
@@ -54,12 +55,27 @@ def effector_errors(result: ClipAcceptance, source: ClipAcceptance) -> dict[str,
     return out
 
 
+def _collision_overrides(pairs: list[str]) -> dict[str, object]:
+    """``KEY=VALUE`` settings of CollisionParams; ``FIELD.NAME=VALUE`` sets one entry of a dict field (e.g.
+    ``end_effectors.LeftHand=2``)."""
+    defaults = collisions.CollisionParams()
+    out: dict[str, object] = {}
+    for key, value in (kv.split("=", 1) for kv in pairs):
+        name, _, entry = key.partition(".")
+        if entry:
+            table = dict(out.get(name, getattr(defaults, name)))  # type: ignore[call-overload]
+            table[entry] = float(value)
+            out[name] = table
+        else:
+            out[name] = type(getattr(defaults, name))(float(value))
+    return out
+
+
 def main() -> None:
     ap = case_parser(__doc__)
     ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
-    defaults = collisions.CollisionParams()
-    overrides = {k: type(getattr(defaults, k))(float(v)) for k, v in (kv.split("=", 1) for kv in a.collisions)}
+    overrides = _collision_overrides(a.collisions)
     collision_params = collisions.CollisionParams(**overrides)
     torch.set_num_threads(1)
     case = prepare_case(a.clip, a.body, a.frames, a.source_body)
