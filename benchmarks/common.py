@@ -261,6 +261,21 @@ def case_parser(description: str | None, frames: int = 100) -> argparse.Argument
     return ap
 
 
+def setting_overrides(defaults: object, pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` numeric settings of a settings dataclass ``defaults``; ``FIELD.NAME=VALUE`` sets one entry of a
+    dict field (e.g. ``end_effectors.LeftHand=2``)."""
+    out: dict[str, Any] = {}
+    for key, value in (kv.split("=", 1) for kv in pairs):
+        name, _, entry = key.partition(".")
+        if entry:
+            table = dict(out.get(name, getattr(defaults, name)))
+            table[entry] = float(value)
+            out[name] = table
+        else:
+            out[name] = type(getattr(defaults, name))(float(value))
+    return out
+
+
 @dataclass
 class HeldoutCase:
     """prepared: the job on the target; source: the judge's measures of the source file, performed by

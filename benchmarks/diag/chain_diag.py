@@ -10,7 +10,8 @@ The clip is sent as a GLB on the average body and resampled to 30 fps, as the he
 copy's and the last stage's rows are that evaluation's figures for the case); ``--frames`` (default 100) caps
 its length. Optional ``--json`` writes the rows; ``--collisions KEY=VALUE`` (repeatable) runs the collision stage
 with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee_weight=0.5``, or one entry of
-a dict setting: ``end_effectors.LeftHand=2``).
+a dict setting: ``end_effectors.LeftHand=2``); ``--hands KEY=VALUE`` the same for the hand contact stage's
+``HandContactParams`` (e.g. ``passes=2``).
 """
 
 from __future__ import annotations
@@ -26,10 +27,10 @@ from retarget_core.canonical import CANONICAL_JOINTS
 from retarget_core.metrics.acceptance import END_EFFECTORS, ClipAcceptance, figures_from_measures, measure_acceptance
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
-from retarget_core.refine import collisions, refinement_stages
+from retarget_core.refine import collisions, hand_contacts, refinement_stages
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
-from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
+from benchmarks.common import case_parser, prepare_case, setting_overrides, write_json  # noqa: E402
 
 FIGURES = ("pen_percent", "frames_over_1cm_percent", "contact_preservation", "false_contacts", "foot_accuracy",
            "end_effector_error_cm", "jerk_ratio", "ground_penetration_cm", "skate_cm", "head_percent")  # fmt: skip
@@ -55,28 +56,15 @@ def effector_errors(result: ClipAcceptance, source: ClipAcceptance) -> dict[str,
     return out
 
 
-def _collision_overrides(pairs: list[str]) -> dict[str, object]:
-    """``KEY=VALUE`` settings of CollisionParams; ``FIELD.NAME=VALUE`` sets one entry of a dict field (e.g.
-    ``end_effectors.LeftHand=2``)."""
-    defaults = collisions.CollisionParams()
-    out: dict[str, object] = {}
-    for key, value in (kv.split("=", 1) for kv in pairs):
-        name, _, entry = key.partition(".")
-        if entry:
-            table = dict(out.get(name, getattr(defaults, name)))  # type: ignore[call-overload]
-            table[entry] = float(value)
-            out[name] = table
-        else:
-            out[name] = type(getattr(defaults, name))(float(value))
-    return out
-
-
 def main() -> None:
     ap = case_parser(__doc__)
     ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--hands", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
-    overrides = _collision_overrides(a.collisions)
+    overrides = setting_overrides(collisions.CollisionParams(), a.collisions)
     collision_params = collisions.CollisionParams(**overrides)
+    hand_overrides = setting_overrides(hand_contacts.HandContactParams(), a.hands)
+    hand_params = hand_contacts.HandContactParams(**hand_overrides)
     torch.set_num_threads(1)
     case = prepare_case(a.clip, a.body, a.frames, a.source_body)
     prepared, source = case.prepared, case.source
@@ -101,14 +89,18 @@ def main() -> None:
         if stage is None or not prepared.inputs.options.stages.enabled(info.name):
             continue
         t = time.perf_counter()
-        run = (lambda c, m: collisions.resolve(c, m, collision_params)) if info.name == "collisions" else stage
+        run = {
+            "collisions": lambda c, m: collisions.resolve(c, m, collision_params),
+            "hand_contacts": lambda c, m: hand_contacts.run(c, m, hand_params),
+        }.get(info.name, stage)
         outcome = run(ctx, motion)
         motion = outcome.motion
         report(info.name, motion, time.perf_counter() - t)
         scalars = {k: v for k, v in outcome.report.items() if isinstance(v, (int, float)) and k != "seconds"}
         print(f"{'':>12}  stage report: {scalars}", flush=True)
     if a.json:
-        write_json(a.json, {"clip": a.clip.stem, "body": a.body, "collisions": overrides, "rows": rows})
+        write_json(a.json, {"clip": a.clip.stem, "body": a.body, "collisions": overrides, "hands": hand_overrides,
+                            "rows": rows})  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ moved by its wrist, with the arm's two-bone IK keeping the elbow's swivel and th
 2. Smooth in time: per hand, a weighted Gaussian mean of the wanted moves (weight 1 where a move is wanted,
    ``hold_weight`` where a touching hand is near enough and is not to be pressed in, ``free_weight`` elsewhere):
    a weighted mean never overshoots, and it is as smooth as the Gaussian whatever the weights.
-3. Two passes (the second measures the first's result); then the never-worse check of the collision stage on the
+3. Three passes (each measures the one before); then the never-worse check of the collision stage on the
    changed frames, with the arms' penetration read on the judge's parts: where it got worse, the change is
    withdrawn smoothly (:mod:`retarget_core.refine.never_worse`).
 
@@ -62,10 +62,11 @@ class HandContactParams:
     clear_m: float = 0.02  # ... and is kept this far from it on the result [counted within 1 cm]
     max_move_m: float = 0.10  # at most this wrist move per frame (farther: another pose, not a lost touch)
     reach_m: float = 0.12  # a touching hand's distance is searched up to this
-    smooth_seconds: float = 0.1  # the moves' smoothing in time (a Gaussian's standard deviation)
+    smooth_seconds: float = 0.05  # the moves' smoothing in time (a Gaussian's standard deviation): at 0.1 a hand
+    # pressed into a thigh for a few frames kept half its depth (docs/contacts.md)
     free_weight: float = 0.1  # a frame without a contact to keep or a false one to avoid: weakly toward no move
     hold_weight: float = 3.0  # a touching hand already near its part: firmly no move (moves nearby barely spread)
-    passes: int = 2  # measure-and-move passes
+    passes: int = 3  # measure-and-move passes: each takes a hand further out where the smoothed move fell short
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
     out_m: float = 0.005  # a hand deeper than this in a part is moved out to its surface [frames > 1 cm]
     depth_cap_m: float = 0.08  # ... read up to this depth (deeper: the hand is in another pose, not pressed in)

@@ -1,6 +1,7 @@
 """The hand contact stage on a real body (the skinny sample) with built poses, measured as the judge measures
 (:func:`retarget_core.metrics.acceptance.measure_pose`): a hand that rests on its thigh in the source and is
-lifted 5 cm off it on the target is put back on it; one pressed 2.5 cm into it is moved out to its surface; a hand clear of the body in the source that the target
+lifted 5 cm off it on the target is put back on it; one pressed 2.5 cm into it is moved out to its surface, over a
+span or for a few frames; a hand clear of the body in the source that the target
 brings within a centimetre of the torso is moved clear of it; an arm with nothing to keep or avoid keeps its
 rotations bit for bit; the moves' smoothing in time follows the wanted moves where they are defined and never overshoots them."""
 
@@ -149,6 +150,22 @@ def test_a_hand_pressed_into_its_thigh_is_moved_out_to_the_surface(skinny) -> No
     after = _hand_depth(ch, mapping, out.motion, list(range(12, 28, 2)))
     assert (after < 0.01).all()
     assert (_judged(ch, mapping, out.motion, list(range(12, 28, 4)))[:, LEFT, legs] < 0.025).all()  # still touching
+
+
+def test_a_hand_pressed_into_its_thigh_for_a_few_frames_comes_out_too(skinny) -> None:  # type: ignore[no-untyped-def]
+    ch, mapping, rb = skinny
+    source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
+    side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
+    inward = torch.tensor([-side * 0.03, 0.0, 0.0], dtype=torch.float64)  # into the thigh ...
+    t = torch.arange(FRAMES, dtype=torch.float64)
+    ease = torch.minimum(smoothstep((t - 14.0) / 3.0), smoothstep((23.0 - t) / 3.0))  # ... for 4 frames, as a
+    moves = torch.zeros(FRAMES, 2, 3, dtype=torch.float64)  # swinging hand brushes it on a walk
+    moves[:, LEFT] = ease[:, None] * inward
+    target = apply_moves(source, arms_of(mapping, ch.skeleton.parents), moves, 0.995)
+    frames = list(range(14, 24))
+    assert _hand_depth(ch, mapping, target, frames).max() > 0.02
+    out = hand_contacts.run(_context(ch, mapping, source, target), target)
+    assert _hand_depth(ch, mapping, out.motion, frames).max() < 0.006  # the smoothing does not average it away
 
 
 def test_a_move_out_of_a_part_keeps_the_contact_the_hand_rests_on() -> None:
