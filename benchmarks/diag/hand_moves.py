@@ -21,10 +21,10 @@ import torch
 from retarget_core.contacts.hand_depth import hand_tests
 from retarget_core.contacts.hand_reach import reach_body
 from retarget_core.motion import Motion
-from retarget_core.pipeline import refine_context
+from retarget_core.pipeline import refine, refine_context
 from retarget_core.refine import hand_contacts as hc
-from retarget_core.refine import refinement_stages
 from retarget_core.refine.arms import arms_of
+from retarget_core.stages import REFINEMENT_STAGE_NAMES
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
 from benchmarks.common import HeldoutCase, case_parser, prepare_case, setting_overrides, write_json  # noqa: E402
@@ -32,14 +32,11 @@ from benchmarks.common import HeldoutCase, case_parser, prepare_case, setting_ov
 
 def chain_before_hands(case: HeldoutCase) -> tuple[Any, Motion]:
     """The refine context and the default chain's motion up to (not with) the hand contact stage."""
-    ctx = refine_context(case.prepared)
-    motion = case.prepared.before
-    for info, stage in refinement_stages():
-        if info.name == "hand_contacts":
-            break
-        if stage is not None and case.prepared.inputs.options.stages.enabled(info.name):
-            motion = stage(ctx, motion).motion
-    return ctx, motion
+    prepared = case.prepared
+    options = prepared.inputs.options.model_copy(deep=True)
+    for name in REFINEMENT_STAGE_NAMES[REFINEMENT_STAGE_NAMES.index("hand_contacts") :]:
+        setattr(options.stages, name, False)
+    return refine_context(prepared), refine(prepared, options=options).after
 
 
 def one_pass(ctx: Any, motion: Motion, side: int, deeper_cm: float, p: hc.HandContactParams) -> list[dict[str, Any]]:
