@@ -49,8 +49,8 @@ from retarget_core.metrics.acceptance_body import (
 )
 from retarget_core.motion import Motion
 
-CHUNK_BUDGET_BYTES = 160 * 2**20  # a chunk's part trees and posed rows: 86 MB at 64 frames on the bulky sample, 342
-# MB on the 95k-vertex large character (which then poses 29 frames at a time: its 1,000-frame job peaked at 1.59 GB)
+CHUNK_BUDGET_BYTES = 160 * 2**20  # a chunk's part trees and posed rows: 64 frames of a MakeHuman body fit, a 95k-vertex
+# body poses fewer at a time (figures: docs/results.md, "Trees of four triangles a leaf")
 HAND_CELL_M = 0.01  # one sampled hand vertex per rest-pose cell of this size (at 1.80 m)
 COARSE_HAND_CELL_M = 0.025  # ... for the queries that only ask whether a hand comes near a part
 ARM_CELL_M = 0.02  # the arms' penetration check: one arm vertex per cell of this size, and every hand vertex
