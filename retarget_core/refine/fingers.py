@@ -7,11 +7,12 @@ and turns finger joints only, and only where a finger is inside another part of 
 
 1. Find: every finger vertex's depth, and its hand's palm's, inside the parts a hand is tested against, on every
    frame (:mod:`retarget_core.refine.finger_depth`: the collision stages' depth). A finger *sinks* where it is
-   deeper than its palm by more than ``tolerance_m``; it is turned only through a run of such frames in which it
-   goes deeper than its palm by more than ``allowance_m`` somewhere. A palm in the body (the skinning fold at the
-   hip on a walk, a hand pressed on a thigh) is the stages' before, which no finger turn can mend, and a finger
-   brushing a surface a few millimetres deep is left alone: no finger flicks on a walk. Everywhere else the
-   fingers keep the copy's rotations bit for bit.
+   deeper than its palm by more than ``tolerance_m``; it is turned only on the sinking frames of a contact (a run
+   of frames with the finger in the body) in which it goes deeper than its palm by more than ``allowance_m``
+   somewhere, so a finger that comes near its palm's depth for a while and sinks again is turned both times. A
+   palm in the body (the skinning fold at the hip on a walk, a hand pressed on a thigh) is the stages' before,
+   which no finger turn can mend, and a finger brushing a surface a few millimetres deep is left alone: no finger
+   flicks on a walk. Everywhere else the fingers keep the copy's rotations bit for bit.
 2. Turn, proximal to distal (first, middle, last joint of each finger and of the thumb): on the frames where a
    finger sinks from that joint on, candidate turns of the joint are measured on rays from no turn (flexion and
    extension for a hinge, ``directions`` rays in the flexion-spread plane for the thumb's first joint), every
@@ -86,8 +87,8 @@ class FingerParams:
 
     # Depth a finger may keep beyond its palm's: below it a finger is on the surface (about the SDF grids' error).
     tolerance_m: float = 0.001
-    # A finger is turned only through a contact (a run of frames deeper than its palm by more than the tolerance)
-    # where it goes deeper than its palm by more than this somewhere: a finger brushing a surface is left alone.
+    # A finger is turned only in a contact (a run of frames with it in the body) where it goes deeper than its
+    # palm by more than this somewhere: a finger brushing a surface is left alone.
     allowance_m: float = 0.005
     # Candidate turns: every step_deg up to max_turn_deg along each ray; rays around a joint that also spreads.
     max_turn_deg: float = 45.0
@@ -434,15 +435,17 @@ def dilate_smooth(x: Tensor, half: int) -> Tensor:
     return torch.nn.functional.conv1d(padded, (kernel / kernel.sum())[None, None])[:, 0].T
 
 
-def buried(excess: Tensor, tol: float, allowance: float) -> Tensor:
-    """``(F, C)``: the frames of each chain's runs of ``excess (F, C)`` (its depth beyond its palm's, m) above
-    ``tol`` that go beyond ``allowance`` somewhere."""
-    over = excess > tol
-    start = over & ~torch.cat([torch.zeros_like(over[:1]), over[:-1]])
-    run = start.long().cumsum(0)  # each chain's runs numbered from 1 (0: before its first)
-    peak = torch.zeros(excess.shape[0] + 1, excess.shape[1], dtype=excess.dtype)
-    peak = peak.scatter_reduce(0, run, excess.masked_fill(~over, 0.0), "amax")
-    return over & (peak.gather(0, run) > allowance)
+def buried(depth: Tensor, palm: Tensor, tol: float, allowance: float) -> Tensor:
+    """``(F, C)``: the frames where a finger is deeper than its palm by more than ``tol`` in each of its contacts
+    (runs of frames with ``depth (F, C)`` above ``tol``, m) in which it goes deeper than its palm (``palm (F, C)``)
+    by more than ``allowance`` somewhere. A contact is the whole time a finger is in the body, so a finger that
+    comes near its palm's depth for a while is still turned on the frames of that contact where it sinks again."""
+    inside, excess = depth > tol, depth - palm
+    start = inside & ~torch.cat([torch.zeros_like(inside[:1]), inside[:-1]])
+    run = start.long().cumsum(0)  # each chain's contacts numbered from 1 (0: before its first)
+    peak = torch.zeros(depth.shape[0] + 1, depth.shape[1], dtype=depth.dtype)
+    peak = peak.scatter_reduce(0, run, excess.masked_fill(~inside, 0.0), "amax")
+    return inside & (excess > tol) & (peak.gather(0, run) > allowance)
 
 
 def solve_level(job: Level, params: FingerParams, deep: Tensor, palm: Tensor) -> Tensor:
@@ -519,7 +522,7 @@ def clear_fingers(ctx: RefineContext, motion: Motion, params: FingerParams) -> t
     palm = torch.zeros_like(first)
     if len(inside):
         palm[inside] = palms(ctx, fv, motion.rotations[inside], motion.translations[inside])
-    chosen = buried(first - palm, tol, params.allowance_m * ctx.target.height / REFERENCE_HEIGHT_M)
+    chosen = buried(first, palm, tol, params.allowance_m * ctx.target.height / REFERENCE_HEIGHT_M)
     to_cm = 100.0 * REFERENCE_HEIGHT_M / ctx.target.height
     report: dict[str, Any] = {"frames_changed": 0, "fingers": len(chains), "frames_in_body": len(inside),
                               "frames_beyond_palm": int((first - palm > tol).any(1).sum()),
