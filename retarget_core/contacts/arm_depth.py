@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from retarget_core.contacts.hand_reach import PosedParts
+from retarget_core.geometry.bvh_kernels import rows_in_boxes
 from retarget_core.geometry.triangle_bvh import PosedBoxes, closest_triangles, winding_numbers
 from retarget_core.metrics.acceptance_body import HANDS, LIMB_TESTS
 
@@ -104,15 +105,17 @@ def points_inside(pp: PosedParts, pts: Tensor, name: str,
     closed = pp.rb.body.part(name)
     if closed is None or len(pts) == 0:
         return empty
-    at = pp.posed[:, pts]  # (n, K, 3)
     lo, hi = pp.box(name)
-    f, k = torch.nonzero(((at >= lo) & (at <= hi)).all(dim=-1), as_tuple=True)
+    posed = pp.posed.contiguous()
+    f, k = (torch.from_numpy(x) for x in rows_in_boxes(posed.numpy(), pts.numpy(), lo[:, 0].contiguous().numpy(),
+                                                        hi[:, 0].contiguous().numpy()))  # fmt: skip
     if len(f) == 0:
         return empty
+    at = posed[f, pts[k]]
     tree, boxes = pp.rb.trees[name], pp.tree_boxes(name, torch.unique(f))
-    inside = winding_numbers(tree, boxes, f, at[f, k]).abs() > 0.5
-    f, k = f[inside], k[inside]
-    d, face = closest_triangles(tree, boxes, f, at[f, k], max_depth)
+    inside = winding_numbers(tree, boxes, f, at).abs() > 0.5
+    f, k, at = f[inside], k[inside], at[inside]
+    d, face = closest_triangles(tree, boxes, f, at, max_depth)
     return f, k, d, face, boxes
 
 

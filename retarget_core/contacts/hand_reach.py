@@ -204,13 +204,8 @@ class PosedParts:
 
     def _made_box(self, name: str, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
         """:meth:`box_of`, measured on :attr:`posed`."""
-        posed = self.posed.contiguous()
-        lo, hi = posed.new_empty(len(posed), 1, 3), posed.new_empty(len(posed), 1, 3)
-        if len(vertices) == 0:
-            return lo.fill_(math.inf), hi.fill_(-math.inf)
-        arrays = posed.numpy(), np.ascontiguousarray(vertices, dtype=np.int64), lo.numpy()[:, 0], hi.numpy()[:, 0]
-        run_in_blocks(lambda b: indexed_bounds(arrays[0][b], arrays[1], arrays[2][b], arrays[3][b]), len(posed), 8)
-        return lo, hi
+        lo, hi = frame_boxes(self.posed, vertices)
+        return lo[:, None], hi[:, None]
 
     def _closed(self, name: str) -> ClosedPart:
         """The body's part ``name`` (it has it)."""
@@ -333,6 +328,18 @@ def _with_frames(some: PosedBoxes | None, new: PosedBoxes, frames: Tensor, n: in
                       rows)  # fmt: skip
 
 
+def frame_boxes(posed: Tensor, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
+    """``(n, 3)`` low and high corners of the box of the rows ``vertices (K,)`` of each frame of ``posed (n, W,
+    3)`` (float64), without gathering them (inf and -inf when ``K`` is 0)."""
+    posed = posed.contiguous()
+    lo, hi = posed.new_empty(len(posed), 3), posed.new_empty(len(posed), 3)
+    if len(vertices) == 0:
+        return lo.fill_(math.inf), hi.fill_(-math.inf)
+    arrays = posed.numpy(), np.ascontiguousarray(vertices, dtype=np.int64), lo.numpy(), hi.numpy()
+    run_in_blocks(lambda b: indexed_bounds(arrays[0][b], arrays[1], arrays[2][b], arrays[3][b]), len(posed), 8)
+    return lo, hi
+
+
 def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,
                coarse: bool = False) -> Reach:  # fmt: skip
     """The :class:`Reach` of queries (``frame (Q,)`` into ``posed (n, W, 3)``, ``hand (Q,)`` into :data:`HANDS`,
@@ -341,15 +348,14 @@ def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: 
     not searched; each part's tree is refit on the frames queried."""
     points = rb.coarse_hand_points if coarse else rb.hand_points
     out = _empty_reach(len(frame))
-    posed = posed.double()
-    hand_lo = torch.stack([posed[:, torch.from_numpy(p)].amin(dim=1) for p in rb.hand_points], dim=1)  # (n, 2, 3)
-    hand_hi = torch.stack([posed[:, torch.from_numpy(p)].amax(dim=1) for p in rb.hand_points], dim=1)
+    posed = posed.double().contiguous()
+    boxes = [frame_boxes(posed, p) for p in rb.hand_points]
+    hand_lo, hand_hi = (torch.stack([b[i] for b in boxes], dim=1) for i in (0, 1))  # (n, 2, 3)
     for p_i in torch.unique(part).tolist():
         closed = rb.body.part(PARTS[p_i])
         if closed is None:
             continue
-        at = posed[:, torch.from_numpy(closed.vertices)]
-        lo, hi = at.amin(dim=1), at.amax(dim=1)  # (n, 3) the part's box (cap centres lie within it)
+        lo, hi = frame_boxes(posed, closed.vertices)  # (n, 3) the part's box (cap centres lie within it)
         sel = torch.nonzero(part == p_i).flatten()
         f, h = frame[sel], hand[sel]
         gap = (torch.maximum(lo[f] - hand_hi[f, h], hand_lo[f, h] - hi[f]).clamp_min(0.0)).norm(dim=-1)

@@ -267,6 +267,54 @@ def indexed_bounds(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.
         lo[f, 0], lo[f, 1], lo[f, 2], hi[f, 0], hi[f, 1], hi[f, 2] = lx, ly, lz, hx, hy, hz
 
 
+@_compiled
+def _in_box(posed: np.ndarray, f: int, i: int, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether row ``i`` of frame ``f`` of ``posed (n, V, 3)`` lies in that frame's box ``lo, hi (n, 3)``."""
+    for x in range(3):
+        v = posed[f, i, x]
+        if not (lo[f, x] <= v and v <= hi[f, x]):
+            return False
+    return True
+
+
+@_compiled
+def count_in_boxes(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.ndarray, first: int, last: int,
+                   count: np.ndarray) -> None:  # fmt: skip
+    """Into ``count[f]``, for the frames ``first <= f < last``, how many rows ``index (K,)`` of frame ``f`` of
+    ``posed (n, V, 3)`` lie in its box ``lo, hi (n, 3)`` (without gathering them)."""
+    for f in range(first, last):
+        c = 0
+        for i in index:
+            if _in_box(posed, f, i, lo, hi):
+                c += 1
+        count[f] = c
+
+
+@_compiled
+def fill_in_boxes(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.ndarray, first: int, last: int,
+                  start: np.ndarray, frame: np.ndarray, which: np.ndarray) -> None:  # fmt: skip
+    """:func:`count_in_boxes`'s rows written from ``start[f]`` on: their frame and their place in ``index``."""
+    for f in range(first, last):
+        n = start[f]
+        for k in range(len(index)):
+            if _in_box(posed, f, index[k], lo, hi):
+                frame[n], which[n] = f, k
+                n += 1
+
+
+def rows_in_boxes(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows ``index (K,)`` of each frame of ``posed (n, V, 3)`` (contiguous) inside that frame's box ``lo, hi
+    (n, 3)``: frame and place in ``index``, ``(N,)`` each, by frame then place (as ``nonzero`` of the gathered
+    test gives them)."""
+    n = posed.shape[0]
+    count = np.zeros(n, dtype=np.int64)
+    run_in_blocks(lambda b: count_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], count), n, 8)
+    start = np.concatenate([np.zeros(1, dtype=np.int64), np.cumsum(count)])
+    frame, which = np.empty(int(start[-1]), dtype=np.int64), np.empty(int(start[-1]), dtype=np.int64)
+    run_in_blocks(lambda b: fill_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], start, frame, which), n, 8)
+    return frame, which
+
+
 def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MIN_BLOCK) -> None:
     """``walk(block)`` over ``count`` items (queries, frames) in blocks, one per torch thread (the walks release
     the GIL); a block holds at least ``min_block`` items."""
@@ -279,4 +327,5 @@ def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MI
         list(pool.map(walk, [slice(s, s + step) for s in range(0, count, step)]))
 
 
-__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "run_in_blocks", "triangle_distance", "winding_walk"]
+__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_in_boxes", "run_in_blocks", "triangle_distance",
+           "winding_walk"]

@@ -164,3 +164,23 @@ def test_indexed_bounds_equal_the_gathered_min_and_max() -> None:
     indexed_bounds(posed.numpy(), index, lo, hi)
     assert np.array_equal(lo, posed[:, index].amin(dim=1).numpy())
     assert np.array_equal(hi, posed[:, index].amax(dim=1).numpy())
+
+
+@pytest.mark.parametrize("frames", [3, 40])  # one block, and blocks on threads
+def test_rows_in_boxes_equal_the_gathered_test_in_the_same_order(frames: int) -> None:
+    """The compiled rows of each frame inside its box are those of ``nonzero`` on the gathered comparison, in its
+    order (frame, then place in the index), a row on a box face counting as inside."""
+    from retarget_core.geometry.bvh_kernels import rows_in_boxes
+
+    gen = torch.Generator().manual_seed(5)
+    posed = torch.randn(frames, 300, 3, dtype=torch.float64, generator=gen)
+    index = torch.tensor([7, 0, 299, 42, 42, 150, 3])
+    lo = torch.randn(frames, 3, dtype=torch.float64, generator=gen) - 0.5
+    hi = lo + 1.5
+    lo[0] = posed[0, 42]  # on its box's low corner: inside
+    lo[1], hi[1] = math.inf, -math.inf  # an empty box: nothing inside
+    f, k = rows_in_boxes(posed.numpy(), index.numpy(), lo.numpy(), hi.numpy())
+    at = posed[:, index]
+    want_f, want_k = torch.nonzero(((at >= lo[:, None]) & (at <= hi[:, None])).all(dim=-1), as_tuple=True)
+    assert len(want_f) > 0 and 1 not in f.tolist()
+    assert np.array_equal(f, want_f.numpy()) and np.array_equal(k, want_k.numpy())
