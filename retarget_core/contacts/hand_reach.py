@@ -15,7 +15,6 @@ to posing and refitting everything.
 
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -28,7 +27,7 @@ from retarget_core import kinematics
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
 from retarget_core.energy.sdf import vertex_areas
-from retarget_core.geometry.bvh_kernels import indexed_bounds, run_in_blocks
+from retarget_core.geometry.bvh_kernels import rows_bounds
 from retarget_core.geometry.closest_point import closest_points
 from retarget_core.geometry.triangle_bvh import (
     PosedBoxes,
@@ -331,13 +330,8 @@ def _with_frames(some: PosedBoxes | None, new: PosedBoxes, frames: Tensor, n: in
 def frame_boxes(posed: Tensor, vertices: np.ndarray) -> tuple[Tensor, Tensor]:
     """``(n, 3)`` low and high corners of the box of the rows ``vertices (K,)`` of each frame of ``posed (n, W,
     3)`` (float64), without gathering them (inf and -inf when ``K`` is 0)."""
-    posed = posed.contiguous()
-    lo, hi = posed.new_empty(len(posed), 3), posed.new_empty(len(posed), 3)
-    if len(vertices) == 0:
-        return lo.fill_(math.inf), hi.fill_(-math.inf)
-    arrays = posed.numpy(), np.ascontiguousarray(vertices, dtype=np.int64), lo.numpy(), hi.numpy()
-    run_in_blocks(lambda b: indexed_bounds(arrays[0][b], arrays[1], arrays[2][b], arrays[3][b]), len(posed), 8)
-    return lo, hi
+    lo, hi = rows_bounds(posed.contiguous().numpy(), vertices)
+    return torch.from_numpy(lo), torch.from_numpy(hi)
 
 
 def hand_reach(rb: ReachBody, posed: Tensor, frame: Tensor, hand: Tensor, part: Tensor, bound: Tensor,

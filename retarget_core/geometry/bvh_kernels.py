@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 MIN_BLOCK = 2048  # queries per thread at least: fewer are not worth a thread's start
+MIN_ROWS = 1 << 18  # rows read per thread at least by the box kernels (a thread pool's start costs ~0.2 ms)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -302,17 +303,34 @@ def fill_in_boxes(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.n
                 n += 1
 
 
+def rows_bounds(posed: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 3)`` low and high corners of the box of the rows ``index (K,)`` of each frame of ``posed (n, V, 3)``
+    (float64, contiguous), without gathering them; inf and -inf where ``K`` is 0."""
+    n = posed.shape[0]
+    lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
+    if len(index):
+        index = np.ascontiguousarray(index, dtype=np.int64)
+        run_in_blocks(lambda b: indexed_bounds(posed[b], index, lo[b], hi[b]), n, _frames_per_block(index))
+    return lo, hi
+
+
 def rows_in_boxes(posed: np.ndarray, index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rows ``index (K,)`` of each frame of ``posed (n, V, 3)`` (contiguous) inside that frame's box ``lo, hi
     (n, 3)``: frame and place in ``index``, ``(N,)`` each, by frame then place (as ``nonzero`` of the gathered
     test gives them)."""
     n = posed.shape[0]
     count = np.zeros(n, dtype=np.int64)
-    run_in_blocks(lambda b: count_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], count), n, 8)
+    block = _frames_per_block(index)
+    run_in_blocks(lambda b: count_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], count), n, block)
     start = np.concatenate([np.zeros(1, dtype=np.int64), np.cumsum(count)])
     frame, which = np.empty(int(start[-1]), dtype=np.int64), np.empty(int(start[-1]), dtype=np.int64)
-    run_in_blocks(lambda b: fill_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], start, frame, which), n, 8)
+    run_in_blocks(lambda b: fill_in_boxes(posed, index, lo, hi, *b.indices(n)[:2], start, frame, which), n, block)
     return frame, which
+
+
+def _frames_per_block(index: np.ndarray) -> int:
+    """Frames a thread of the box kernels takes at least, reading the rows ``index (K,)`` of each."""
+    return max(1, MIN_ROWS // max(1, len(index)))
 
 
 def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MIN_BLOCK) -> None:
@@ -327,5 +345,5 @@ def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MI
         list(pool.map(walk, [slice(s, s + step) for s in range(0, count, step)]))
 
 
-__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_in_boxes", "run_in_blocks", "triangle_distance",
+__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_bounds", "rows_in_boxes", "run_in_blocks", "triangle_distance",
            "winding_walk"]

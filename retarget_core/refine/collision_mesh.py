@@ -25,6 +25,7 @@ from torch import Tensor
 
 from retarget_core.canonical import JointMapping
 from retarget_core.character import Character
+from retarget_core.geometry.bvh_kernels import rows_bounds, rows_in_boxes
 from retarget_core.geometry.triangle_bvh import (
     PosedBoxes,
     TriangleBVH,
@@ -185,10 +186,8 @@ def _queries(setup: MeshSetup, t_name: str, posed: np.ndarray, reach: float) -> 
         cand, drag = setup.testers[tester], setup.dragged[tester]
         if t_name not in targets or len(cand) == 0 or len(drag) == 0:
             continue
-        lo = posed[:, drag].min(axis=1, keepdims=True) - reach  # (n, 1, 3)
-        hi = posed[:, drag].max(axis=1, keepdims=True) + reach
-        at = posed[:, cand]
-        f, k = np.nonzero(np.all((at >= lo) & (at <= hi), axis=-1))
+        lo, hi = rows_bounds(posed, drag)  # (n, 3)
+        f, k = rows_in_boxes(posed, cand, lo - reach, hi + reach)
         frames.append(torch.from_numpy(f).long())
         vertices.append(torch.from_numpy(cand[k]).long())
     return torch.cat(frames), torch.cat(vertices)

@@ -166,11 +166,15 @@ def test_indexed_bounds_equal_the_gathered_min_and_max() -> None:
     assert np.array_equal(hi, posed[:, index].amax(dim=1).numpy())
 
 
-@pytest.mark.parametrize("frames", [3, 40])  # one block, and blocks on threads
-def test_rows_in_boxes_equal_the_gathered_test_in_the_same_order(frames: int) -> None:
+@pytest.mark.parametrize("frames", [3, 40])
+def test_rows_in_boxes_equal_the_gathered_test_in_the_same_order(frames: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """The compiled rows of each frame inside its box are those of ``nonzero`` on the gathered comparison, in its
-    order (frame, then place in the index), a row on a box face counting as inside."""
-    from retarget_core.geometry.bvh_kernels import rows_in_boxes
+    order (frame, then place in the index), a row on a box face counting as inside; in one block and in blocks on
+    threads."""
+    from retarget_core.geometry import bvh_kernels
+    from retarget_core.geometry.bvh_kernels import rows_bounds, rows_in_boxes
+
+    monkeypatch.setattr(bvh_kernels, "MIN_ROWS", 8)  # 40 frames of 7 rows: blocks of a frame and more
 
     gen = torch.Generator().manual_seed(5)
     posed = torch.randn(frames, 300, 3, dtype=torch.float64, generator=gen)
@@ -184,3 +188,5 @@ def test_rows_in_boxes_equal_the_gathered_test_in_the_same_order(frames: int) ->
     want_f, want_k = torch.nonzero(((at >= lo[:, None]) & (at <= hi[:, None])).all(dim=-1), as_tuple=True)
     assert len(want_f) > 0 and 1 not in f.tolist()
     assert np.array_equal(f, want_f.numpy()) and np.array_equal(k, want_k.numpy())
+    b_lo, b_hi = rows_bounds(posed.numpy(), index.numpy())
+    assert np.array_equal(b_lo, at.amin(dim=1).numpy()) and np.array_equal(b_hi, at.amax(dim=1).numpy())
