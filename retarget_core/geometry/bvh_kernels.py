@@ -12,6 +12,7 @@ functions release the GIL, so blocks of queries run on threads (:func:`run_in_bl
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar, cast
@@ -341,8 +342,19 @@ def run_in_blocks(walk: Callable[[slice], None], count: int, min_block: int = MI
         walk(slice(0, count))
         return
     step = -(-count // threads)
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(walk, [slice(s, s + step) for s in range(0, count, step)]))
+    list(_pool(threads).map(walk, [slice(s, s + step) for s in range(0, count, step)]))
+
+
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """A pool of ``threads`` threads kept for the process (its start costs about 0.2 ms a call); a forked child
+    (a worker process) makes its own, since threads do not survive a fork."""
+    key = (os.getpid(), threads)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix="blocks")
+    return _POOLS[key]
 
 
 __all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_bounds", "rows_in_boxes", "run_in_blocks", "triangle_distance",

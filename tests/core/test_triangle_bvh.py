@@ -190,3 +190,27 @@ def test_rows_in_boxes_equal_the_gathered_test_in_the_same_order(frames: int, mo
     assert np.array_equal(f, want_f.numpy()) and np.array_equal(k, want_k.numpy())
     b_lo, b_hi = rows_bounds(posed.numpy(), index.numpy())
     assert np.array_equal(b_lo, at.amin(dim=1).numpy()) and np.array_equal(b_hi, at.amax(dim=1).numpy())
+
+
+def _blocks_sum(count: int) -> int:
+    """Sum of 0..count-1 through :func:`run_in_blocks` on two threads."""
+    from retarget_core.geometry.bvh_kernels import run_in_blocks
+
+    out = np.zeros(count, dtype=np.int64)
+    torch.set_num_threads(2)
+
+    def walk(b: slice) -> None:
+        out[b] = np.arange(count)[b]
+
+    run_in_blocks(walk, count, 1)
+    return int(out.sum())
+
+
+def test_blocks_run_in_a_forked_worker_after_the_parent_used_its_threads() -> None:
+    """The thread pool is kept for the process: a child forked after the parent ran blocks on it (a Celery
+    worker) still runs its blocks."""
+    import multiprocessing
+
+    assert _blocks_sum(100) == 4950
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        assert pool.apply_async(_blocks_sum, (100,)).get(timeout=60) == 4950
