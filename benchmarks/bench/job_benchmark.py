@@ -5,6 +5,10 @@ Defaults: a 300-frame piece (at 30 fps) of CMU 02_08 on the bulky sample body (1
 are reported in ms per frame, for the whole chain and for the copy alone (every refinement stage off).
 
     python benchmarks/bench/job_benchmark.py [--motion CLIP] [--target BODY] [--frames 300] [-o out.json] [--profile]
+        [--default-only --runs 3]
+
+``--default-only`` times the default chain alone (for runs of two versions taken in turn: on a shared machine the
+spread between runs an hour apart is 10 %).
 
 ``--profile`` also runs one default-chain job (body cache warm) under pyinstrument and writes its call tree
 beside the JSON (``<output>_profile.txt``): where the time goes, function by function.
@@ -46,11 +50,12 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2, help="jobs per setting; the first one warms the body cache")
     add_output(ap, results_dir("bench") / "job_benchmark.json")
     ap.add_argument("--profile", action="store_true", help="profile one default-chain job (pyinstrument)")
+    ap.add_argument("--default-only", action="store_true", help="time the default chain alone")
     args = ap.parse_args()
     print(f"job benchmark: {args.motion.name} on {Path(args.target).name}, {args.frames} frames at {args.fps:g} fps, "
           f"torch threads {torch.get_num_threads()} (the pipeline uses its own setting)")  # fmt: skip
     results: dict[str, Any] = {}
-    for label, on in CHAINS:
+    for label, on in [c for c in CHAINS if c[0] == "default chain" or not args.default_only]:
         runs = [run_job_once(args.motion, args.target, args.frames, args.fps, on) for _ in range(args.runs)]
         results[label] = {"runs": runs, "ms_per_frame": per_frame_ms(runs[-1])}
         print(f"\n{label} (body cache: {', '.join(r['body_cache'] for r in runs)}):")
