@@ -357,5 +357,7 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return _POOLS[key]
 
 
-__all__ = ["closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_bounds", "rows_in_boxes", "run_in_blocks", "triangle_distance",
-           "winding_walk"]
+__all__ = [
+    "closest_point", "closest_walk", "indexed_bounds", "refit_boxes", "rows_bounds", "rows_in_boxes", "run_in_blocks",
+    "triangle_distance", "winding_walk",
+]  # fmt: skip
