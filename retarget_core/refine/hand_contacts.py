@@ -290,6 +290,15 @@ def apply_moves(motion: Motion, arms: list[Arm], moves: Tensor, max_reach: float
     return Motion(sk, motion.fps, local, motion.translations.clone(), motion.name)
 
 
+def pass_moves(src: Tensor, state: HandState, inside: HandDepth, motion: Motion, arms: list[Arm], scale: float,
+               p: HandContactParams) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """One measure-and-move pass on ``motion`` as measured (``state``, ``inside``): the wanted wrist moves ``(F, 2,
+    3)`` (:func:`wanted_moves`, a grip's hands apart) and their smoothing in time ``(F, 2, 3)`` (body scale)."""
+    apart = grip_apart(inside, wrist_positions(motion, arms), p.out_m * scale)
+    want, weight = wanted_moves(src, state, apart, scale, p)
+    return want, smooth_moves(want, weight, p.smooth_seconds * motion.fps)
+
+
 @computes_on_cpu
 def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = None) -> StageOutcome:
     """Hands onto the parts the source touches and clear of those it does not (module doc)."""
@@ -309,11 +318,9 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
     moved_motion = motion
     for _ in range(p.passes):
-        apart = grip_apart(inside, wrist_positions(moved_motion, arms), p.out_m * rb.scale)
-        want, weight = wanted_moves(src, state, apart, rb.scale, p)
+        want, step = pass_moves(src, state, inside, moved_motion, arms, rb.scale, p)
         if float(want.abs().max()) == 0.0:
             break
-        step = smooth_moves(want, weight, p.smooth_seconds * motion.fps)
         total = total + step
         again = torch.nonzero(step.norm(dim=-1).amax(dim=1) / rb.scale > 1e-4).flatten()
         moved_motion = apply_moves(motion, arms, total, p.max_reach)
