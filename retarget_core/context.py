@@ -34,6 +34,8 @@ class RefineContext:
     planted: ``(F, 2)`` bool, left and right foot of the source planted as ACCEPTANCE.md defines it (toe low,
         toe and ankle still, majority-smoothed; :func:`metrics.feet_acceptance.planted_feet`); None: derive
         from ``feet`` (toe and heel).
+    toe_heights: ``(F, 2)`` how far each source toe joint (the ankle without toes) stands above its rest height,
+        metres at a 1.80 m character (:func:`metrics.feet_acceptance.toe_heights`); None: unknown.
     before: the copy baseline every stage's effect is measured against.
     options: the job's options; device: where stages make their tensors.
     progress: called with the fraction 0..1 of the current stage done (optional).
@@ -51,6 +53,7 @@ class RefineContext:
     feet: FootContacts
     before: Motion
     planted: torch.Tensor | None = None
+    toe_heights: torch.Tensor | None = None
     options: RetargetOptions = field(default_factory=RetargetOptions)
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     progress: Callable[[float], None] | None = None

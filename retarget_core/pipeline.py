@@ -29,6 +29,7 @@ from retarget_core.jobs import OUTPUT_FILES, CancelCheck, JobCanceled, JobInputs
 from retarget_core.loading import LoadedCharacter, LoadedMotion, load_character, load_motion
 from retarget_core.measure import SourceContactResult, carry_contacts, detect_source_contacts, torch_threads
 from retarget_core.memory import release_free_memory
+from retarget_core.metrics.feet_acceptance import toe_heights
 from retarget_core.metrics_summary import build_metrics, headline
 from retarget_core.motion import Motion
 from retarget_core.normalize import NormalizationReport
@@ -150,7 +151,9 @@ def prepare(
             found = _no_self_contacts(found)
         constraints = carry_contacts(found.self_contacts, body.character, body.mapping, target.character, target.mapping)
         target_feet = FootContacts(found.feet.labels, [target.mapping.joints.get(c, -1) for _, c in FOOT_JOINTS])
-        source_planted = planted_as_judged(body.character, body.mapping, _as_in_file(source, body, source_view))
+        as_judged = _as_in_file(source, body, source_view)
+        source_planted = planted_as_judged(body.character, body.mapping, as_judged)
+        source_toe_heights = toe_heights(body.character, body.mapping, as_judged)
     with clock.stage("copy"):
         before = copy_retarget(
             source.motion, source.mapping, target.character.skeleton, target.mapping, in_place=opts.in_place
@@ -161,7 +164,7 @@ def prepare(
     warnings = list(source.notes) + list(target.notes) + list(body.notes)
     warnings += transfer_notes(source.mapping, target.mapping)
     return Prepared(inputs, source, body, target, source_view, found, constraints, target_feet, before, assets,
-                    warnings, cached, source_planted)  # fmt: skip
+                    warnings, cached, source_planted, source_toe_heights)  # fmt: skip
 
 
 def refine_context(prepared: Prepared, options: RetargetOptions | None = None) -> RefineContext:
@@ -173,6 +176,7 @@ def refine_context(prepared: Prepared, options: RetargetOptions | None = None) -
         source_body=prepared.source_body.character, source_mapping=prepared.source_body.mapping,
         source_view=prepared.source_view, self_contacts=prepared.contacts.self_contacts,
         constraints=prepared.constraints, feet=prepared.target_feet, planted=prepared.source_planted,
+        toe_heights=prepared.source_toe_heights,
         before=prepared.before, options=opts, device=resolve_device(opts.device),
     )  # fmt: skip
 

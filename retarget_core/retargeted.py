@@ -35,6 +35,8 @@ class Prepared:
     body_cached: bool = False
     # (F, 2) left/right foot of the source planted, as the judge defines it (on the source body).
     source_planted: Tensor | None = None
+    # (F, 2) how far each source toe stands above its rest height (m at 1.80 m), as the judge reads it.
+    source_toe_heights: Tensor | None = None
 
 
 @dataclass

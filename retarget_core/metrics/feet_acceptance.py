@@ -126,6 +126,15 @@ class FeetFigures:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
+def toe_heights(character: Character, mapping: JointMapping, motion: Motion) -> Tensor:
+    """``(F, 2)`` how far each toe joint (left, right; the ankle without toes) stands above its rest height,
+    metres at a 1.80 m character: the height :func:`planted_feet` compares with 3 cm."""
+    _, gpos = motion.global_transforms()
+    _, rest = character.skeleton.rest_global()
+    scale = character.height / REFERENCE_HEIGHT_M
+    return torch.stack([(gpos[:, toe, 1] - rest[toe, 1]) / scale for toe, _ in foot_joint_pairs(mapping)], dim=1)
+
+
 def lowest_foot_heights(character: Character, mapping: JointMapping, motion: Motion) -> Tensor:
     """``(F, 2)`` height of the lowest vertex of each foot (m, on the body's own scale)."""
     grot, gpos = motion.global_transforms()
@@ -187,4 +196,5 @@ __all__ = [
     "lowest_foot_heights",
     "lowest_vertex_heights",
     "planted_feet",
+    "toe_heights",
 ]

@@ -23,6 +23,11 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
    locks float. A foot outside its plants (fades, pelvis drop, and a free foot the copy dips under the floor,
    such as a dancer's foot sliding along it) that would be below the floor is lifted by the leg, smoothly (the
    toe kept above it): the floor stage after this one cannot lift the body where the other foot stands planted.
+6. Free feet keep their height: outside its plants a foot's toe joint is raised, the same way, to at least the
+   height the source's toe stands above its own rest height (``ctx.toe_heights``, at 1.80 m, scaled to the
+   body). A foot the source holds a few centimetres off the floor (a hovering, still foot) is not planted for
+   the judge; the copy on other proportions, and the stages before, carried it lower, under the judge's 3 cm
+   toe line, where it read as planted (docs/results.md, "Free feet at the source's height").
 
 The stage computes on the CPU (a 300-frame clip is a few hundred small batched operations: faster there than
 on a GPU) and returns the motion on the device it came on.
@@ -378,32 +383,52 @@ def pelvis_drop(
     return _dilate_smooth(need, radius) if bool((need > 0).any()) else need
 
 
-def floor_lift(leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_translations: Tensor, blend: int) -> Tensor:
-    """``(F,)`` how far to raise the ankle target so the foot's lowest vertex stays above the floor, on the
-    frames outside its plants (the ramps, where the pelvis moved, and a free foot the copy dips under the floor:
-    a foot sliding on the floor in a dance is not planted), from the planned foot pose and the rigid foot model
-    (it matches skinning to 1 mm on the shared bodies); spread over ``blend`` frames each side so it rises and
-    sets smoothly."""
+def floor_lift(
+    leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_translations: Tensor, blend: int,
+    least_toe_y: Tensor | None = None,
+) -> Tensor:  # fmt: skip
+    """``(F,)`` how far to raise the ankle target on the frames outside its plants (the ramps, where the pelvis
+    moved, and a free foot) so that the foot's lowest vertex stays above the floor (a dancer's foot the copy
+    dips under it) and its toe joint (the ankle without toes) no lower than ``least_toe_y (F,)`` (a foot the
+    source holds off the floor stays as far off it), from the planned foot pose and the rigid foot model (it
+    matches skinning to 1 mm on the shared bodies); spread over ``blend`` frames each side so it rises and sets
+    smoothly."""
     solved = ~plan.inside
     if not bool(solved.any()):
         return torch.zeros_like(drop)
     idx = torch.nonzero(solved).flatten()
     foot_rot = plan.foot_rotation[idx]
     low = (_up_row(foot_rot) @ model.local[~model.on_toe].T).amin(-1)
+    toe_y = torch.zeros_like(low)
+    if leg.toe >= 0:
+        toe_y = (_up_row(foot_rot) * rest_translations[leg.toe]).sum(-1)
     if plan.toe_local is not None and leg.toe >= 0 and bool(model.on_toe.any()):
         toe_world = rot.mul(foot_rot, plan.toe_local[idx])
-        toe_y = (_up_row(foot_rot) * rest_translations[leg.toe]).sum(-1)
         low = torch.minimum(low, toe_y + (_up_row(toe_world) @ model.local[model.on_toe].T).amin(-1))
+    # The spread lift fades in over the blend away from each plant (0 inside): spreading a later depth back to
+    # the plant's edge would raise the foot in one frame there. Never below the floor depth itself, which starts
+    # near 0 at the edge (the ramp leaves from the lock); the toe's shortfall is faded in the same way (a foot
+    # leaving a flat lock is below a source toe that left the floor already).
+    taper = smoothstep(_frames_from(plan.inside).to(drop.dtype) / (blend + 1))
     under = torch.zeros_like(drop)
     under[idx] = (-(plan.target[idx, 1] + low)).clamp_min(0.0)
+    if least_toe_y is not None:
+        short = (least_toe_y[idx] - (plan.target[idx, 1] + toe_y)).clamp_min(0.0)
+        under[idx] = torch.maximum(under[idx], taper[idx] * short)
     if not bool((under > 0).any()):
         return under
-    # The spread lift fades in over the blend away from each plant (0 inside): spreading a later depth back to
-    # the plant's edge would raise the foot in one frame there. Never below the depth itself, which starts
-    # near 0 at the edge (the ramp leaves from the lock).
-    taper = smoothstep(_frames_from(plan.inside).to(drop.dtype) / (blend + 1))
     lift = torch.maximum(under, taper * _dilate_smooth(under, blend))
     return torch.where(plan.inside, torch.zeros_like(lift), lift)
+
+
+def least_toe_heights(ctx: RefineContext, legs: list[Leg], rest_pos: Tensor, scale: float, frames: int) -> list[Tensor | None]:
+    """Per leg, ``(F,)`` the lowest height (m) its toe joint (the ankle without toes) may take: as far above its
+    rest height as the source's toe stands above its own (``ctx.toe_heights``, at 1.80 m), scaled to the body;
+    None where the source's heights are unknown."""
+    if ctx.toe_heights is None:
+        return [None for _ in legs]
+    heights = ctx.toe_heights[:frames].to(rest_pos.dtype).cpu()
+    return [rest_pos[leg.toe if leg.toe >= 0 else leg.ankle, 1] + heights[:, k] * scale for k, leg in enumerate(legs)]
 
 
 def _frames_from(inside: Tensor) -> Tensor:
@@ -563,9 +588,10 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
             else:
                 plans.append(_idle_plan(leg, grot, gpos, motion.rotations))
         drop = pelvis_drop(legs, plans, gpos, params, scale, radius)
+        least = least_toe_heights(ctx, legs, rest_pos, scale, frames)
         lifts = [
-            floor_lift(leg, plan, model, drop, sk.rest_translations, blend)
-            for leg, plan, model in zip(legs, plans, models, strict=True)
+            floor_lift(leg, plan, model, drop, sk.rest_translations, blend, low)
+            for leg, plan, model, low in zip(legs, plans, models, least, strict=True)
         ]
         out, _, out_pos = apply_plans(motion, grot, gpos, root, legs, plans, drop, lifts, params, rest_rot)
         lock_seconds = time.perf_counter() - t0

@@ -13,7 +13,7 @@ from retarget_core.context import RefineContext
 from retarget_core.copy_retarget import copy_retarget
 from retarget_core.loading import LoadedCharacter, LoadedMotion
 from retarget_core.measure import SourceContactResult, detect_source_contacts
-from retarget_core.metrics.feet_acceptance import planted_feet
+from retarget_core.metrics.feet_acceptance import planted_feet, toe_heights
 from retarget_core.motion import Motion
 from retarget_core.placement import place_on_floor, planted_frames
 from retarget_core.source_body import source_body_for
@@ -54,6 +54,7 @@ def make_context(
     ctx = RefineContext(
         target=char, target_mapping=tmap, parts=parts, sdf=part_sdf,  # type: ignore[arg-type]
         source_body=body, source_mapping=body_map, source_view=view, self_contacts=found.self_contacts,
-        constraints=constraints, feet=feet, planted=planted_feet(body, body_map, view), before=before,
+        constraints=constraints, feet=feet, planted=planted_feet(body, body_map, view),
+        toe_heights=toe_heights(body, body_map, view), before=before,
     )  # fmt: skip
     return Harness(ctx, view, found)

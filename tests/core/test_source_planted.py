@@ -48,3 +48,17 @@ def test_source_plants_are_the_judges_also_when_the_file_floats(tmp_path: Path) 
     # Re-grounded on loading, the clip stands as before; in the file's coordinates its toes are 6 cm up.
     assert floating.source_planted is not None and not bool(floating.source_planted.any())
     assert torch.equal(floating.source_planted, _judged_planted(floating_glb))
+
+
+def test_source_toe_heights_are_read_in_the_file_coordinates(tmp_path: Path) -> None:
+    """The source toe heights the foot lock keeps a free foot at (above each toe's rest height, m at 1.80 m) are
+    read where the judge reads them: a file 6 cm above its floor has its toes 6 cm higher."""
+    glb = source_as_glb(WALK, BODY, tmp_path / "walk.glb", 60, 30.0)
+    opts = RetargetOptions(fps=30.0)
+    standing = prepare(JobInputs(glb, BODY, None, opts))
+    floating = prepare(JobInputs(_raised(glb, tmp_path / "float.glb", 0.06), BODY, None, opts))
+    low, high = standing.source_toe_heights, floating.source_toe_heights
+    assert low is not None and high is not None and low.shape == (60, 2)
+    assert bool(torch.isfinite(low).all()) and float(low.amin()) < 0.03  # the walk's toes touch the floor
+    lift = 0.06 * 1.80 / standing.source_body.character.height
+    torch.testing.assert_close(high - low, torch.full_like(low, lift), atol=1e-4, rtol=0.0)
