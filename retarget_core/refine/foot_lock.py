@@ -25,9 +25,9 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
    toe kept above it): the floor stage after this one cannot lift the body where the other foot stands planted.
 6. Free feet stay free: outside its plants a foot's toe joint is raised, the same way, to at least the height
    the source's toe stands above its own rest height (``ctx.toe_heights``, at 1.80 m, scaled to the body), up to
-   5 mm over the judge's 3 cm plant line. A foot the source holds a few centimetres off the floor (a hovering, still foot) is not planted for
-   the judge; the copy on other proportions, and the stages before, carried it lower, under the judge's 3 cm
-   toe line, where it read as planted (docs/results.md, "Free feet at the source's height").
+   5 mm over the judge's 3 cm plant line. A foot the source holds a few centimetres off the floor (a hovering,
+   still foot) is not planted for the judge; the copy on other proportions, and the stages before, carried it
+   lower, under that line, where it read as planted (docs/results.md, "Free feet at the source's height").
 
 The stage computes on the CPU (a 300-frame clip is a few hundred small batched operations: faster there than
 on a GPU) and returns the motion on the device it came on.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -266,3 +267,18 @@ def test_a_free_foot_keeps_the_source_toe_height_and_leaves_its_plant_smoothly()
     assert bool((raised[away] >= least[away] - 1e-7).all())
     shortfall = (least - target[:, 1]).clamp_min(0.0)
     assert float(lift.diff().abs().max()) <= 2.0 * float(shortfall.diff().abs().max())
+
+
+def test_a_free_toe_is_kept_up_to_just_over_the_plant_line() -> None:
+    """The least toe height follows the source's toe above its rest height (scaled to the body) up to 5 mm over
+    the judge's 3 cm plant line: the least lift that keeps a free foot free."""
+    legs = [foot_lock.Leg("Left", 0, 1, 2, 3, 0, 1), foot_lock.Leg("Right", 4, 5, 6, -1, 2, 3)]
+    rest = torch.zeros(7, 3)
+    rest[3, 1], rest[6, 1] = 0.02, 0.08  # the left toe and the right ankle (no toe) at rest
+    source = torch.tensor([[0.0, 0.01], [0.02, 0.034], [0.06, 0.2]])  # (F, 2) at 1.80 m
+    ctx = SimpleNamespace(toe_heights=source)
+    params = foot_lock.FootLockParams()
+    left, right = foot_lock.least_toe_heights(ctx, legs, rest, 0.5, 3, params)  # type: ignore[arg-type]
+    torch.testing.assert_close(left, torch.tensor([0.02, 0.03, 0.02 + 0.5 * params.free_toe_height_m]))
+    torch.testing.assert_close(right, torch.tensor([0.085, 0.097, 0.08 + 0.5 * params.free_toe_height_m]))
+    assert foot_lock.least_toe_heights(SimpleNamespace(toe_heights=None), legs, rest, 0.5, 3, params) == [None, None]  # type: ignore[arg-type]
