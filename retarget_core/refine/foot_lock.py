@@ -559,8 +559,8 @@ def leg_penetration(ctx: RefineContext, motion: Motion, frames: Tensor, params: 
 @computes_on_cpu
 def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None) -> StageOutcome:
     """Hold the source's plants on the floor (module doc). Returns the motion and a report: frames changed,
-    plants locked, foot slide on planted frames before/after, pelvis lowered frames, leg penetration
-    before/after (on the changed frames) and seconds."""
+    plants locked, foot slide on planted frames before/after, pelvis lowered frames, frames a free foot was raised
+    and the largest raise, leg penetration before/after (on the changed frames) and seconds."""
     params = params or FootLockParams()
     t0 = time.perf_counter()
     character = ctx.target
@@ -576,7 +576,7 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
     radius = max(1, round(params.pelvis_smooth_seconds * motion.fps))
     all_plants = [make_plants(plant_spans(p), frames, blend) for p in planted]
     if not any(all_plants):
-        report = _report(0, [0, 0], None, None, 0, 0.0, None, None, time.perf_counter() - t0, 0.0)
+        report = _report(0, [0, 0], None, None, 0, 0.0, None, None, time.perf_counter() - t0, 0.0, torch.zeros(0))
         return StageOutcome(motion, report)
     with torch.no_grad():
         grot, gpos = motion.global_transforms()
@@ -615,6 +615,7 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
     report = _report(
         int(changed.sum()), [len(p) for p in all_plants], slide_before, slide_after,
         int((drop > 1e-5).sum()), float(drop.max()) * to_cm, pen_before, pen_after, lock_seconds, check_seconds,
+        torch.stack(lifts, 1) * to_cm if lifts else torch.zeros(0),
     )  # fmt: skip
     return StageOutcome(out, report)
 
@@ -630,8 +631,10 @@ def _idle_plan(leg: Leg, grot: Tensor, gpos: Tensor, local_rot: Tensor) -> LegPl
 def _report(
     frames_changed: int, per_foot: list[int], slide_before: dict | None, slide_after: dict | None,
     pelvis_frames: int, pelvis_max_cm: float, pen_before: dict | None, pen_after: dict | None,
-    lock_seconds: float, check_seconds: float,
+    lock_seconds: float, check_seconds: float, lift_cm: Tensor,
 ) -> dict[str, Any]:  # fmt: skip
+    """The stage's report; ``lift_cm (F, legs)``: each free foot's raise (over the floor, or to the source's toe
+    height) in cm at 1.80 m."""
     return {
         "frames_changed": frames_changed,
         "plants_locked": sum(per_foot),
@@ -640,6 +643,8 @@ def _report(
         "foot_slide_after_cm_per_frame": slide_after,
         "pelvis_lowered_frames": pelvis_frames,
         "pelvis_max_drop_cm": round(pelvis_max_cm, 3),
+        "feet_lifted_frames": int((lift_cm > 1e-3).any(dim=1).sum()) if lift_cm.numel() else 0,
+        "feet_max_lift_cm": round(float(lift_cm.max()), 3) if lift_cm.numel() else 0.0,
         "leg_penetration_before": pen_before,
         "leg_penetration_after": pen_after,
         "seconds": round(lock_seconds + check_seconds, 4),

@@ -150,6 +150,16 @@ def test_clip_without_plants_is_unchanged(harness: Harness) -> None:
         torch.equal(out.motion.rotations, ctx.before.rotations) and torch.equal(out.motion.translations, ctx.before.translations)
     )
     assert out.report["frames_changed"] == 0 and out.report["plants_locked"] == 0
+    assert out.report["feet_lifted_frames"] == 0
+
+
+def test_the_report_counts_the_frames_a_free_foot_was_raised() -> None:
+    """A reviewer sees how often and how far free feet were raised (over the floor, or to the source's toe
+    height): frames where either foot rose, and the largest raise."""
+    lift_cm = torch.zeros(6, 2)
+    lift_cm[1, 0], lift_cm[2, 1], lift_cm[3, 0], lift_cm[3, 1] = 0.5, 2.0, 1.0, 0.0001
+    report = foot_lock._report(6, [1, 1], None, None, 0, 0.0, None, None, 0.0, 0.0, lift_cm)
+    assert report["feet_lifted_frames"] == 3 and report["feet_max_lift_cm"] == 2.0
 
 
 def _jerk(motion: Motion, height: float) -> float:
@@ -167,6 +177,7 @@ def test_jerk_ratio_on_a_walk(harness: Harness, locked: foot_lock.StageOutcome) 
 
 def test_pelvis_lowered_only_where_needed(harness: Harness, locked: foot_lock.StageOutcome) -> None:
     assert locked.report["pelvis_max_drop_cm"] < 5.0
+    assert locked.report["feet_lifted_frames"] <= locked.report["frames_changed"]
     feet = foot_vertices(harness.context.target, harness.context.target_mapping)
     assert len(feet.left) > 100 and len(feet.right) > 100
 
