@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,15 +58,34 @@ def inside_of(body: AcceptanceBody, part: str, posed: np.ndarray, x: np.ndarray)
     return tuple(out)
 
 
-def breakdown(case: Any, motion: Any) -> dict[str, Any]:
-    """The deep frames of ``motion`` on the case's target, counted by (part, segment, parts inside)."""
-    target = case.prepared.target
-    character, mapping = target.character, target.mapping
+@dataclass
+class PosedCase:
+    """A motion on a case's target: its judged body, arms by side, joint positions ``gpos (F, J, 3)`` and vertices
+    ``posed (F, V, 3)``, and ``limb (V,)`` the vertices outside the head."""
+
+    character: Any
+    mapping: Any
+    body: AcceptanceBody
+    arms: dict[int, Arm]
+    gpos: torch.Tensor
+    posed: np.ndarray
+    limb: np.ndarray
+
+
+def posed_case(case: Any, motion: Any) -> PosedCase:
+    """``motion`` posed on the case's target (:class:`PosedCase`)."""
+    character, mapping = case.prepared.target.character, case.prepared.target.mapping
     body = acceptance_body(character, mapping)
     arms = {arm.side: arm for arm in arms_of(mapping, character.skeleton.parents)}
     grot, gpos = motion.global_transforms()
     posed = character.pose_vertex_subset(torch.arange(character.num_vertices), grot, gpos).numpy()
-    limb = body.part_of_vertex != PARTS.index("head")
+    return PosedCase(character, mapping, body, arms, gpos, posed, body.part_of_vertex != PARTS.index("head"))
+
+
+def breakdown(case: Any, motion: Any) -> dict[str, Any]:
+    """The deep frames of ``motion`` on the case's target, counted by (part, segment, parts inside)."""
+    pc = posed_case(case, motion)
+    character, mapping, body, arms, gpos, posed, limb = pc.character, pc.mapping, pc.body, pc.arms, pc.gpos, pc.posed, pc.limb
     counts: collections.Counter[str] = collections.Counter()
     along = []
     for f, p in enumerate(posed):

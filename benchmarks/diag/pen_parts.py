@@ -21,24 +21,19 @@ import numpy as np
 import torch
 
 from retarget_core.metrics.acceptance import measure_pose
-from retarget_core.metrics.acceptance_body import PARTS, acceptance_body
+from retarget_core.metrics.acceptance_body import PARTS
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine
-from retarget_core.refine.arms import arms_of
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
 from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
-from benchmarks.diag.deep_parts import DEEP_M, along_arm, inside_of  # noqa: E402
+from benchmarks.diag.deep_parts import DEEP_M, along_arm, inside_of, posed_case  # noqa: E402
 
 
 def by_part(case: Any, motion: Motion) -> dict[str, dict[str, float]]:
     """``{"part / segment / in parts": {"pen_percent", "deeper_1cm_percent"}}`` of ``motion`` on the case's target."""
-    character, mapping = case.prepared.target.character, case.prepared.target.mapping
-    body = acceptance_body(character, mapping)
-    arms = {arm.side: arm for arm in arms_of(mapping, character.skeleton.parents)}
-    grot, gpos = motion.global_transforms()
-    posed = character.pose_vertex_subset(torch.arange(character.num_vertices), grot, gpos).numpy()
-    limb = body.part_of_vertex != PARTS.index("head")
+    pc = posed_case(case, motion)
+    character, mapping, body, arms, gpos, posed, limb = pc.character, pc.mapping, pc.body, pc.arms, pc.gpos, pc.posed, pc.limb
     counts: collections.Counter[str] = collections.Counter()
     deep: collections.Counter[str] = collections.Counter()
     for f, p in enumerate(posed):
