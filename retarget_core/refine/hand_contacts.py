@@ -68,8 +68,8 @@ class HandContactParams:
     hold_weight: float = 3.0  # a touching hand already near its part: firmly no move (moves nearby barely spread)
     passes: int = 3  # measure-and-move passes: each takes a hand further out where the smoothed move fell short
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
-    out_m: float = 0.001  # a hand deeper than this in a part is moved out to its surface [pen %v counts any depth;
-    # at 0.005, the grip 002_08 x heldout_short kept 0.19 %v of shallow hand in the other arm, 0.29 x the copy's]
+    out_m: float = 0.001  # a hand deeper than this in a part is moved out to its surface [pen %v counts any
+    # depth; 5 mm left grips' hands shallowly in each other: docs/results.md, "A hand a millimetre inside"]
     depth_cap_m: float = 0.08  # ... read up to this depth (deeper: the hand is in another pose, not pressed in)
     trade_depth_m: float = 0.005  # a move that keeps more source contacts may deepen the arms up to this [1 cm]
 
