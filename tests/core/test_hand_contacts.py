@@ -153,7 +153,7 @@ def test_a_hand_pressed_into_its_thigh_is_moved_out_to_the_surface(skinny) -> No
 
 
 def test_a_hand_sunk_a_few_millimetres_into_its_thigh_comes_out_too(skinny) -> None:  # type: ignore[no-untyped-def]
-    """The judge's pen %v counts a vertex at any depth: a hand resting 2 to 4 mm inside its thigh (a grip's hand
+    """The judge's pen %v counts a vertex at any depth: a hand resting 1.5 to 5 mm inside its thigh (a grip's hand
     in the other fist reads the same) is moved out to within the 1 mm line, still touching."""
     ch, mapping, rb = skinny
     source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
