@@ -17,7 +17,8 @@ moved by its wrist, with the arm's two-bone IK keeping the elbow's swivel and th
 2. Smooth in time: per hand, a weighted Gaussian mean of the wanted moves (weight 1 where a move is wanted,
    ``hold_weight`` where a touching hand is near enough and is not to be pressed in, ``free_weight`` elsewhere):
    a weighted mean never overshoots, and it is as smooth as the Gaussian whatever the weights.
-3. Three passes (each measures the one before); then the never-worse check of the collision stage on the
+3. Up to six passes (each measures the one before; a grip's hands, deep in each other, come out over several);
+   then the never-worse check of the collision stage on the
    changed frames, with the arms' penetration read on the judge's parts: where it got worse, the change is
    withdrawn smoothly (:mod:`retarget_core.refine.never_worse`).
 
@@ -66,7 +67,7 @@ class HandContactParams:
     # pressed into a thigh for a few frames kept half its depth (docs/contacts.md)
     free_weight: float = 0.1  # a frame without a contact to keep or a false one to avoid: weakly toward no move
     hold_weight: float = 3.0  # a touching hand already near its part: firmly no move (moves nearby barely spread)
-    passes: int = 3  # measure-and-move passes: each takes a hand further out where the smoothed move fell short
+    passes: int = 6  # measure-and-move passes at most: each takes a hand further out where the smoothed move fell short
     max_reach: float = 0.995  # the arm's IK reach, as a share of its length
     out_m: float = 0.001  # a hand deeper than this in a part is moved out to its surface [pen %v counts any
     # depth; 5 mm left grips' hands shallowly in each other: docs/results.md, "A hand a millimetre inside"]
