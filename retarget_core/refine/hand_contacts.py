@@ -18,9 +18,8 @@ moved by its wrist, with the arm's two-bone IK keeping the elbow's swivel and th
    ``hold_weight`` where a touching hand is near enough and is not to be pressed in, ``free_weight`` elsewhere):
    a weighted mean never overshoots, and it is as smooth as the Gaussian whatever the weights.
 3. Up to six passes (each measures the one before; a grip's hands, deep in each other, come out over several);
-   then the never-worse check of the collision stage on the
-   changed frames, with the arms' penetration read on the judge's parts: where it got worse, the change is
-   withdrawn smoothly (:mod:`retarget_core.refine.never_worse`).
+   then the never-worse check of the collision stage on the changed frames, with the arms' penetration read on
+   the judge's parts: where it got worse, the change is withdrawn smoothly (:mod:`retarget_core.refine.never_worse`).
 
 Lengths at a 1.80 m character (scaled to the body). Computes on the CPU.
 """
