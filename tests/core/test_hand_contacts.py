@@ -152,24 +152,53 @@ def test_a_hand_pressed_into_its_thigh_is_moved_out_to_the_surface(skinny) -> No
     assert (_judged(ch, mapping, out.motion, list(range(12, 28, 4)))[:, LEFT, legs] < 0.025).all()  # still touching
 
 
-def test_a_hand_sunk_a_few_millimetres_into_its_thigh_comes_out_too(skinny) -> None:  # type: ignore[no-untyped-def]
-    """The judge's pen %v counts a vertex at any depth: a hand resting 1.5 to 5 mm inside its thigh (a grip's hand
-    in the other fist reads the same) is moved out to within the 1 mm line, still touching."""
+SUNK_FRAMES = list(range(12, 28, 3))
+
+
+def _sunk_a_few_millimetres(skinny) -> tuple[Motion, Motion]:  # type: ignore[no-untyped-def]
+    """A hand resting 1.5 to 5 mm inside its thigh on :data:`SUNK_FRAMES` (a grip's hand in the other fist reads
+    the same), and the stage's result."""
     ch, mapping, rb = skinny
     source = _placed(ch, mapping, rb, _hanging(ch, mapping, rb), LEFT, "left_leg", 0.004)
-    legs = CONTACT_PARTS.index("legs")
     side = float(torch.sign(source.global_transforms()[1][0, mapping.joints["LeftHand"], 0]))
     target = _lifted(source, mapping, LEFT, torch.tensor([-side * 0.007, 0.0, 0.0], dtype=torch.float64))
-    frames = list(range(12, 28, 3))
-    sunk = _hand_depth(ch, mapping, target, frames)
+    sunk = _hand_depth(ch, mapping, target, SUNK_FRAMES)
     assert (sunk > 0.0015).all() and (sunk < 0.005).all()  # shallower than a frame > 1 cm, but counted
-    out = hand_contacts.run(_context(ch, mapping, source, target), target)
-    after = _hand_depth(ch, mapping, out.motion, frames)
+    return target, hand_contacts.run(_context(ch, mapping, source, target), target).motion
+
+
+def _hand_inside(ch: Character, mapping: JointMapping, motion: Motion, frames: list[int]) -> np.ndarray:
+    """``(n,)`` how many left-hand vertices the judge counts inside a part (pen %v) at ``frames``."""
+    grot, gpos = motion.global_transforms()
+    hand = reach_body(ch, mapping).body.hand_vertices["left"]
+    with torch.no_grad():
+        posed = ch.pose_vertices(grot[frames], gpos[frames]).double().numpy()
+    return np.stack([(measure_pose(ch, mapping, p).depth[hand] > 0).sum() for p in posed])
+
+
+@pytest.mark.xfail(strict=True, reason="known gap: the stage moves a hand out only where it is deeper than 1 mm "
+                   "(out_m), so a couple of a sunk hand's vertices stay inside, shallower than that, and pen %v counts "
+                   "them at any depth")  # fmt: skip
+def test_a_sunk_hand_keeps_at_most_a_fifth_of_its_vertices_inside(skinny) -> None:  # type: ignore[no-untyped-def]
+    ch, mapping, _ = skinny
+    target, out = _sunk_a_few_millimetres(skinny)
+    inside = _hand_inside(ch, mapping, target, SUNK_FRAMES)
+    assert (_hand_inside(ch, mapping, out, SUNK_FRAMES) <= 0.2 * inside).all()
+
+
+def test_a_hand_sunk_a_few_millimetres_into_its_thigh_comes_out_too(skinny) -> None:  # type: ignore[no-untyped-def]
+    """The judge's pen %v counts a vertex at any depth: a hand resting 1.5 to 5 mm inside its thigh is moved out
+    to within the 1 mm line, still touching."""
+    ch, mapping, _ = skinny
+    target, out = _sunk_a_few_millimetres(skinny)
+    sunk = _hand_depth(ch, mapping, target, SUNK_FRAMES)
+    after = _hand_depth(ch, mapping, out, SUNK_FRAMES)
     assert (after < 0.5 * sunk).all() and (after < 0.0015).all(), (sunk, after)
-    assert (_judged(ch, mapping, out.motion, frames)[:, LEFT, legs] < 0.025).all()  # still touching
+    legs = CONTACT_PARTS.index("legs")
+    assert (_judged(ch, mapping, out, SUNK_FRAMES)[:, LEFT, legs] < 0.025).all()  # still touching
 
 
-def _pressed_for_four_frames(skinny, inward_m: float) -> tuple[Tensor, Tensor]:  # type: ignore[no-untyped-def]
+def _pressed_for_four_frames(skinny, inward_m: float) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
     """The left hand pushed ``inward_m`` into its thigh for 4 frames, as a swinging hand brushes it on a walk: the
     judge's deepest hand vertex on frames 14-23 before and after the stage ``(10,)`` (m)."""
     ch, mapping, rb = skinny
@@ -183,9 +212,7 @@ def _pressed_for_four_frames(skinny, inward_m: float) -> tuple[Tensor, Tensor]: 
     target = apply_moves(source, arms_of(mapping, ch.skeleton.parents), moves, 0.995)
     frames = list(range(14, 24))
     out = hand_contacts.run(_context(ch, mapping, source, target), target)
-    return torch.from_numpy(_hand_depth(ch, mapping, target, frames)), torch.from_numpy(
-        _hand_depth(ch, mapping, out.motion, frames)
-    )
+    return _hand_depth(ch, mapping, target, frames), _hand_depth(ch, mapping, out.motion, frames)
 
 
 def test_a_hand_pressed_into_its_thigh_for_a_few_frames_comes_out_too(skinny) -> None:  # type: ignore[no-untyped-def]
