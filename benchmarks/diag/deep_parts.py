@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,23 @@ class PosedCase:
     posed: np.ndarray
     limb: np.ndarray
 
+    def limb_depths(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """Per frame: its index, the posed vertices ``(V, 3)`` and the judge's limb depths ``(V,)`` at 1.80 m."""
+        for f, p in enumerate(self.posed):
+            depth = measure_pose(self.character, self.mapping, p).depth * self.body.scale_to_180
+            yield f, p, np.where(self.limb, depth, 0.0)
+
+    def label(self, f: int, p: np.ndarray, v: int) -> tuple[str, float | None]:
+        """Vertex ``v`` of frame ``f`` (posed ``p``): "part / segment / in parts", and where along its arm it lies
+        (0 shoulder, 1 elbow, 2 wrist; None off the arms)."""
+        part = PARTS[self.body.part_of_vertex[v]]
+        side = 0 if part.startswith("left") else 1
+        segment, t = "leg", None
+        if part.endswith("arm") and side in self.arms:
+            t = along_arm(self.arms[side], self.gpos[f].numpy(), p[v])
+            segment = "upper arm" if t < 1.0 else "forearm" if t < 2.0 else "hand"
+        return f"{part} / {segment} / in {'+'.join(inside_of(self.body, part, p, p[v])) or 'none read'}", t
+
 
 def posed_case(case: Any, motion: Any) -> PosedCase:
     """``motion`` posed on the case's target (:class:`PosedCase`)."""
@@ -85,24 +103,18 @@ def posed_case(case: Any, motion: Any) -> PosedCase:
 def breakdown(case: Any, motion: Any) -> dict[str, Any]:
     """The deep frames of ``motion`` on the case's target, counted by (part, segment, parts inside)."""
     pc = posed_case(case, motion)
-    character, mapping, body, arms, gpos, posed, limb = pc.character, pc.mapping, pc.body, pc.arms, pc.gpos, pc.posed, pc.limb
     counts: collections.Counter[str] = collections.Counter()
     along = []
-    for f, p in enumerate(posed):
-        depth = np.where(limb, measure_pose(character, mapping, p).depth * body.scale_to_180, 0.0)
+    for f, p, depth in pc.limb_depths():
         v = int(np.argmax(depth))
         if depth[v] <= DEEP_M:
             continue
-        part = PARTS[body.part_of_vertex[v]]
-        side = 0 if part.startswith("left") else 1
-        segment = "leg"
-        if part.endswith("arm") and side in arms:
-            t = along_arm(arms[side], gpos[f].numpy(), p[v])
+        key, t = pc.label(f, p, v)
+        counts[key] += 1
+        if t is not None:
             along.append(t)
-            segment = "upper arm" if t < 1.0 else "forearm" if t < 2.0 else "hand"
-        counts[f"{part} / {segment} / in {'+'.join(inside_of(body, part, p, p[v])) or 'none read'}"] += 1
     quart = np.percentile(along, [10, 25, 50, 75, 90]).round(2).tolist() if along else []
-    return {"frames": len(posed), "deep": sum(counts.values()), "counts": dict(counts.most_common()), "along_quantiles": quart}
+    return {"frames": len(pc.posed), "deep": sum(counts.values()), "counts": dict(counts.most_common()), "along_quantiles": quart}
 
 
 def main() -> None:

@@ -20,34 +20,25 @@ from typing import Any
 import numpy as np
 import torch
 
-from retarget_core.metrics.acceptance import measure_pose
-from retarget_core.metrics.acceptance_body import PARTS
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for benchmarks.common
 from benchmarks.common import case_parser, prepare_case, write_json  # noqa: E402
-from benchmarks.diag.deep_parts import DEEP_M, along_arm, inside_of, posed_case  # noqa: E402
+from benchmarks.diag.deep_parts import DEEP_M, posed_case  # noqa: E402
 
 
 def by_part(case: Any, motion: Motion) -> dict[str, dict[str, float]]:
     """``{"part / segment / in parts": {"pen_percent", "deeper_1cm_percent"}}`` of ``motion`` on the case's target."""
     pc = posed_case(case, motion)
-    character, mapping, body, arms, gpos, posed, limb = pc.character, pc.mapping, pc.body, pc.arms, pc.gpos, pc.posed, pc.limb
     counts: collections.Counter[str] = collections.Counter()
     deep: collections.Counter[str] = collections.Counter()
-    for f, p in enumerate(posed):
-        depth = np.where(limb, measure_pose(character, mapping, p).depth * body.scale_to_180, 0.0)
+    for f, p, depth in pc.limb_depths():
         for v in np.nonzero(depth > 0)[0]:
-            part = PARTS[body.part_of_vertex[v]]
-            segment = "leg"
-            if part.endswith("arm"):
-                t = along_arm(arms[0 if part.startswith("left") else 1], gpos[f].numpy(), p[v])
-                segment = "upper arm" if t < 1.0 else "forearm" if t < 2.0 else "hand"
-            key = f"{part} / {segment} / in {'+'.join(inside_of(body, part, p, p[v])) or 'none read'}"
+            key, _ = pc.label(f, p, int(v))
             counts[key] += 1
             deep[key] += int(depth[v] > DEEP_M)
-    total = 100.0 / (len(posed) * character.num_vertices)
+    total = 100.0 / (len(pc.posed) * pc.character.num_vertices)
     return {k: {"pen_percent": round(n * total, 4), "deeper_1cm_percent": round(deep[k] * total, 4)}
             for k, n in counts.most_common()}  # fmt: skip
 
