@@ -52,6 +52,7 @@ from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.energy.sdf import effective_depth, sample_pairs, segment_matrices
 from retarget_core.metrics.feet_acceptance import foot_vertices_of
 from retarget_core.motion import Motion
+from retarget_core.refine.floor import FloorParams, least_jerk_lift
 from retarget_core.refine.temporal import smoothstep
 from retarget_core.refine.two_bone_ik import two_bone_ik
 from retarget_core.skeleton import subtree
@@ -386,20 +387,13 @@ def pelvis_drop(
     return _dilate_smooth(need, radius) if bool((need > 0).any()) else need
 
 
-def floor_lift(
-    leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_translations: Tensor, blend: int,
-    least_toe_y: Tensor | None = None,
-) -> Tensor:  # fmt: skip
-    """``(F,)`` how far to raise the ankle target on the frames outside its plants (the ramps, where the pelvis
-    moved, and a free foot) so that the foot's lowest vertex stays above the floor (a dancer's foot the copy
-    dips under it) and its toe joint (the ankle without toes) no lower than ``least_toe_y (F,)`` (a foot the
-    source holds off the floor stays as far off it), from the planned foot pose and the rigid foot model (it
-    matches skinning to 1 mm on the shared bodies); spread over ``blend`` frames each side so it rises and sets
-    smoothly."""
-    solved = ~plan.inside
-    if not bool(solved.any()):
-        return torch.zeros_like(drop)
-    idx = torch.nonzero(solved).flatten()
+def free_foot_heights(
+    leg: Leg, plan: LegPlan, model: FootModel, rest_translations: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """On the frames outside ``leg``'s plants, ``idx (M,)``: its lowest foot vertex ``(M,)`` and its toe joint
+    ``(M,)`` (0: the ankle without toes) above the ankle target, from the planned foot pose and the rigid foot
+    model (it matches skinning to 1 mm on the shared bodies)."""
+    idx = torch.nonzero(~plan.inside).flatten()
     foot_rot = plan.foot_rotation[idx]
     low = (_up_row(foot_rot) @ model.local[~model.on_toe].T).amin(-1)
     toe_y = torch.zeros_like(low)
@@ -408,20 +402,65 @@ def floor_lift(
     if plan.toe_local is not None and leg.toe >= 0 and bool(model.on_toe.any()):
         toe_world = rot.mul(foot_rot, plan.toe_local[idx])
         low = torch.minimum(low, toe_y + (_up_row(toe_world) @ model.local[model.on_toe].T).amin(-1))
+    return idx, low, toe_y
+
+
+def floor_lift(
+    leg: Leg, plan: LegPlan, model: FootModel, drop: Tensor, rest_translations: Tensor, blend: int,
+    least_toe_y: Tensor | None = None, body_lift: Tensor | None = None,
+) -> Tensor:  # fmt: skip
+    """``(F,)`` how far to raise the ankle target on the frames outside its plants (the ramps, where the pelvis
+    moved, and a free foot) so that the foot's lowest vertex stays above the floor (a dancer's foot the copy
+    dips under it) and its toe joint (the ankle without toes) no lower than ``least_toe_y (F,)`` (a foot the
+    source holds off the floor stays as far off it), less ``body_lift (F,)``, what the floor stage will raise the
+    whole body there (:func:`body_floor_lift`); spread over ``blend`` frames each side so it rises and sets
+    smoothly."""
+    if bool(plan.inside.all()):
+        return torch.zeros_like(drop)
+    idx, low, toe_y = free_foot_heights(leg, plan, model, rest_translations)
+    body = torch.zeros_like(drop) if body_lift is None else body_lift.to(drop.dtype)
     # The spread lift fades in over the blend away from each plant (0 inside): spreading a later depth back to
     # the plant's edge would raise the foot in one frame there. Never below the floor depth itself, which starts
     # near 0 at the edge (the ramp leaves from the lock); the toe's shortfall is faded in the same way (a foot
     # leaving a flat lock is below a source toe that left the floor already).
     taper = smoothstep(_frames_from(plan.inside).to(drop.dtype) / (blend + 1))
     under = torch.zeros_like(drop)
-    under[idx] = (-(plan.target[idx, 1] + low)).clamp_min(0.0)
+    under[idx] = (-(plan.target[idx, 1] + low) - body[idx]).clamp_min(0.0)
     if least_toe_y is not None:
-        short = (least_toe_y[idx] - (plan.target[idx, 1] + toe_y)).clamp_min(0.0)
+        short = (least_toe_y[idx] - (plan.target[idx, 1] + toe_y) - body[idx]).clamp_min(0.0)
         under[idx] = torch.maximum(under[idx], taper[idx] * short)
     if not bool((under > 0).any()):
         return under
     lift = torch.maximum(under, taper * _dilate_smooth(under, blend))
     return torch.where(plan.inside, torch.zeros_like(lift), lift)
+
+
+def body_floor_lift(
+    legs: list[Leg], plans: list[LegPlan], models: list[FootModel], rest_translations: Tensor, scale: float,
+    fps: float, params: FootLockParams,
+) -> Tensor:  # fmt: skip
+    """``(F,)`` the root lift the floor stage after this one gives where the free feet sink below the floor (its
+    least-jerk lift, :func:`retarget_core.refine.floor.least_jerk_lift`, with its ceiling over the plants, where a
+    locked foot stands ``lock_float_m`` high): lifting the body moves no foot against the hips (the judged
+    end-effector error), so the legs lift only what the body cannot. The depth left to the body fades in over
+    ``pelvis_smooth_seconds`` from each plant, as the pelvis drop does: a body held low at a plant and asked to
+    clear a deep foot just after it rises in a bump far higher than the foot (18 cm for a 4 cm dip, built case)."""
+    floor = FloorParams()
+    frames = plans[0].inside.shape[0]
+    depth = torch.zeros(frames, dtype=torch.float64)
+    for leg, plan, model in zip(legs, plans, models, strict=True):
+        idx, low, _ = free_foot_heights(leg, plan, model, rest_translations)
+        depth[idx] = torch.maximum(depth[idx], (-(plan.target[idx, 1] + low)).double())
+    depth = torch.where(depth > floor.sunk_m * scale, depth, 0.0)
+    if not bool((depth > 0).any()):
+        return torch.zeros(frames, dtype=plans[0].target.dtype)
+    planted = torch.stack([plan.inside for plan in plans], 0).any(0)
+    fade = max(params.pelvis_smooth_seconds * fps, 1.0)
+    depth = depth * smoothstep(_frames_from(planted).double() / fade)
+    room = max(floor.float_m - params.lock_float_m, 0.0) * scale
+    ceiling = torch.where(planted, room, torch.inf).double()
+    lift = least_jerk_lift(torch.minimum(depth, ceiling), ceiling, fps, floor.size_weight)
+    return lift.to(plans[0].target.dtype)
 
 
 def least_toe_heights(
@@ -594,8 +633,11 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
                 plans.append(_idle_plan(leg, grot, gpos, motion.rotations))
         drop = pelvis_drop(legs, plans, gpos, params, scale, radius)
         least = least_toe_heights(ctx, legs, rest_pos, scale, frames, params)
+        body = None
+        if ctx.options.stages.enabled("floor"):
+            body = body_floor_lift(legs, plans, models, sk.rest_translations, scale, motion.fps, params)
         lifts = [
-            floor_lift(leg, plan, model, drop, sk.rest_translations, blend, low)
+            floor_lift(leg, plan, model, drop, sk.rest_translations, blend, low, body)
             for leg, plan, model, low in zip(legs, plans, models, least, strict=True)
         ]
         out, _, out_pos = apply_plans(motion, grot, gpos, root, legs, plans, drop, lifts, params, rest_rot)
