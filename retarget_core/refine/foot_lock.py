@@ -21,8 +21,10 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
 5. Floor: heights come from a rigid model of the foot's vertices (each on its dominant joint, Foot or
    ToeBase); against skinning it is off by at most 1 mm on the shared bodies (measured), inside the 1 mm the
    locks float. A foot outside its plants (fades, pelvis drop, and a free foot the copy dips under the floor,
-   such as a dancer's foot sliding along it) that would be below the floor is lifted by the leg, smoothly (the
-   toe kept above it): the floor stage after this one cannot lift the body where the other foot stands planted.
+   such as a dancer's foot sliding along it) that would be below the floor is raised, smoothly (the toe kept
+   above it): by the whole body where no foot is planted (the root rises with least jerk: no foot moves against
+   the hips, which the judged end-effector error reads), by the leg for what the body cannot give (beside a
+   planted foot, and fading in from each plant).
 6. Free feet stay free: outside its plants a foot's toe joint is raised, the same way, to at least the height
    the source's toe stands above its own rest height (``ctx.toe_heights``, at 1.80 m, scaled to the body), up to
    5 mm over the judge's 3 cm plant line. A foot the source holds a few centimetres off the floor (a hovering,
@@ -92,6 +94,9 @@ class FootLockParams:
     # A free foot's toe is kept as high above its rest height as the source's, up to this: 5 mm over the judge's
     # 3 cm plant line, the least lift that keeps a free foot free (a full lift costs end-effector error).
     free_toe_height_m: float = 0.035
+    # The whole body's share of a free foot's depth under the floor fades in over this from each plant (held at 0
+    # there): shorter, the least-jerk lift overshoots the dip (0.2 s: 5.4 cm for a 4 cm dip, 0.3 s: 4.5; built case).
+    body_lift_fade_seconds: float = 0.3
 
 
 @dataclass
@@ -412,9 +417,8 @@ def floor_lift(
     """``(F,)`` how far to raise the ankle target on the frames outside its plants (the ramps, where the pelvis
     moved, and a free foot) so that the foot's lowest vertex stays above the floor (a dancer's foot the copy
     dips under it) and its toe joint (the ankle without toes) no lower than ``least_toe_y (F,)`` (a foot the
-    source holds off the floor stays as far off it), less ``body_lift (F,)``, what the floor stage will raise the
-    whole body there (:func:`body_floor_lift`); spread over ``blend`` frames each side so it rises and sets
-    smoothly."""
+    source holds off the floor stays as far off it), less ``body_lift (F,)``, what the whole body rises there
+    (:func:`body_floor_lift`); spread over ``blend`` frames each side so it rises and sets smoothly."""
     if bool(plan.inside.all()):
         return torch.zeros_like(drop)
     idx, low, toe_y = free_foot_heights(leg, plan, model, rest_translations)
@@ -439,12 +443,12 @@ def body_floor_lift(
     legs: list[Leg], plans: list[LegPlan], models: list[FootModel], rest_translations: Tensor, scale: float,
     fps: float, params: FootLockParams,
 ) -> Tensor:  # fmt: skip
-    """``(F,)`` the root lift the floor stage after this one gives where the free feet sink below the floor (its
-    least-jerk lift, :func:`retarget_core.refine.floor.least_jerk_lift`, with its ceiling over the plants, where a
-    locked foot stands ``lock_float_m`` high): lifting the body moves no foot against the hips (the judged
-    end-effector error), so the legs lift only what the body cannot. The depth left to the body fades in over
-    ``pelvis_smooth_seconds`` from each plant, as the pelvis drop does: a body held low at a plant and asked to
-    clear a deep foot just after it rises in a bump far higher than the foot (18 cm for a 4 cm dip, built case)."""
+    """``(F,)`` how far the whole body rises where the free feet sink below the floor and no foot is planted: the
+    floor stage's least-jerk lift (:func:`retarget_core.refine.floor.least_jerk_lift`, its settings), held at 0
+    on every planted frame. Lifting the body moves no foot against the hips (the judged end-effector error), so
+    the legs lift only what the body cannot. The depth left to the body fades in over ``body_lift_fade_seconds``
+    from each plant: a body held down at a plant and asked to clear a deep foot just after it rises in a bump
+    far higher than the foot (18 cm for a 4 cm dip without the fade, built case)."""
     floor = FloorParams()
     frames = plans[0].inside.shape[0]
     depth = torch.zeros(frames, dtype=torch.float64)
@@ -455,10 +459,9 @@ def body_floor_lift(
     if not bool((depth > 0).any()):
         return torch.zeros(frames, dtype=plans[0].target.dtype)
     planted = torch.stack([plan.inside for plan in plans], 0).any(0)
-    fade = max(params.pelvis_smooth_seconds * fps, 1.0)
+    fade = max(params.body_lift_fade_seconds * fps, 1.0)
     depth = depth * smoothstep(_frames_from(planted).double() / fade)
-    room = max(floor.float_m - params.lock_float_m, 0.0) * scale
-    ceiling = torch.where(planted, room, torch.inf).double()
+    ceiling = torch.where(planted, 0.0, torch.inf).double()
     lift = least_jerk_lift(torch.minimum(depth, ceiling), ceiling, fps, floor.size_weight)
     return lift.to(plans[0].target.dtype)
 
@@ -490,7 +493,7 @@ def apply_plans(
     motion: Motion, grot: Tensor, gpos: Tensor, root: int, legs: list[Leg], plans: list[LegPlan], drop: Tensor,
     lift: list[Tensor], params: FootLockParams, rest_rot: Tensor,
 ) -> tuple[Motion, Tensor, Tensor]:  # fmt: skip
-    """The motion with the pelvis lowered by ``drop (F,)`` and each leg solved to its plan (plus ``lift`` (F,)
+    """The motion with the pelvis lowered by ``drop (F,)`` (raised where negative) and each leg solved to its plan (plus ``lift`` (F,)
     per leg on its target's height) on the frames it is driven or the pelvis moved; ``root``: the joint whose
     translation carries the pelvis. ``grot, gpos (F, J, .)``: the input's world transforms. Returns the motion
     and its world rotations and positions (only the legs are recomputed)."""
@@ -503,7 +506,7 @@ def apply_plans(
     new_rot = grot.clone()
     forward = torch.tensor(REST_FORWARD, dtype=gpos.dtype)
     for leg, plan, up in zip(legs, plans, lift, strict=True):
-        idx = torch.nonzero(plan.driven | (drop > 0) | (up > 0)).flatten()
+        idx = torch.nonzero(plan.driven | (drop != 0) | (up > 0)).flatten()
         if idx.numel() == 0:
             continue
         target = plan.target[idx].clone()
@@ -633,14 +636,14 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
                 plans.append(_idle_plan(leg, grot, gpos, motion.rotations))
         drop = pelvis_drop(legs, plans, gpos, params, scale, radius)
         least = least_toe_heights(ctx, legs, rest_pos, scale, frames, params)
-        body = None
-        if ctx.options.stages.enabled("floor"):
-            body = body_floor_lift(legs, plans, models, sk.rest_translations, scale, motion.fps, params)
+        body = body_floor_lift(legs, plans, models, sk.rest_translations, scale, motion.fps, params)
+        # A free foot rises with the body, and by its leg for what the body does not give.
         lifts = [
             floor_lift(leg, plan, model, drop, sk.rest_translations, blend, low, body)
+            + torch.where(plan.inside, 0.0, body)
             for leg, plan, model, low in zip(legs, plans, models, least, strict=True)
         ]
-        out, _, out_pos = apply_plans(motion, grot, gpos, root, legs, plans, drop, lifts, params, rest_rot)
+        out, _, out_pos = apply_plans(motion, grot, gpos, root, legs, plans, drop - body, lifts, params, rest_rot)
         lock_seconds = time.perf_counter() - t0
         changed = ((out.rotations - motion.rotations).abs().amax(dim=(1, 2)) > 1e-6) | (
             (out.translations - motion.translations).abs().amax(dim=(1, 2)) > 1e-7
@@ -659,6 +662,8 @@ def run(ctx: RefineContext, motion: Motion, params: FootLockParams | None = None
         int((drop > 1e-5).sum()), float(drop.max()) * to_cm, pen_before, pen_after, lock_seconds, check_seconds,
         torch.stack(lifts, 1) * to_cm if lifts else torch.zeros(0),
     )  # fmt: skip
+    report["body_lifted_frames"] = int((body > 1e-5).sum())
+    report["body_max_lift_cm"] = round(float(body.max()) * to_cm, 3) if body.numel() else 0.0
     return StageOutcome(out, report)
 
 
