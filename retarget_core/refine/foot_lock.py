@@ -493,10 +493,10 @@ def apply_plans(
     motion: Motion, grot: Tensor, gpos: Tensor, root: int, legs: list[Leg], plans: list[LegPlan], drop: Tensor,
     lift: list[Tensor], params: FootLockParams, rest_rot: Tensor,
 ) -> tuple[Motion, Tensor, Tensor]:  # fmt: skip
-    """The motion with the pelvis lowered by ``drop (F,)`` (raised where negative) and each leg solved to its plan (plus ``lift`` (F,)
-    per leg on its target's height) on the frames it is driven or the pelvis moved; ``root``: the joint whose
-    translation carries the pelvis. ``grot, gpos (F, J, .)``: the input's world transforms. Returns the motion
-    and its world rotations and positions (only the legs are recomputed)."""
+    """The motion with the pelvis lowered by ``drop (F,)`` (raised where negative) and each leg solved to its
+    plan (plus ``lift`` (F,) per leg on its target's height) on the frames it is driven or the pelvis moved;
+    ``root``: the joint whose translation carries the pelvis. ``grot, gpos (F, J, .)``: the input's world
+    transforms. Returns the motion and its world rotations and positions (only the legs are recomputed)."""
     sk = motion.skeleton
     local_r = motion.rotations.clone()
     local_t = motion.translations.clone()

@@ -240,8 +240,9 @@ def test_floor_lift_rises_from_the_plant_edge_without_a_step() -> None:
 
 def test_a_free_foot_the_copy_dips_under_the_floor_is_lifted() -> None:
     """A foot that slides along the floor, unplanted (a dance: it moves more than 1 cm a frame), and that the copy
-    sinks up to 3 cm under it, far from any plant, with no body lift given (the floor stage off): lifted at least
-    to the floor where it sinks (the judge's ground penetration, issue 22), not elsewhere."""
+    sinks up to 3 cm under it, far from any plant, with no body lift given (``body_floor_lift`` gives none beside
+    a planted foot): lifted at least to the floor where it sinks (the judge's ground penetration, issue 22), not
+    elsewhere."""
     frames, blend = 60, 4
     leg = foot_lock.Leg("Left", 0, 1, 2, -1, 0, 1)
     model = foot_lock.FootModel(torch.tensor([[0.0, -0.1, 0.0]]), torch.zeros(1, dtype=torch.bool))
