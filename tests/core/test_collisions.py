@@ -224,20 +224,28 @@ def _lowest(ch: Character, m: Motion, vertices: torch.Tensor) -> float:
     return float(ch.pose_vertices(grot, gpos)[:, vertices, 1].min())
 
 
-def test_hand_through_the_floor_comes_up_and_the_feet_go_no_lower(bulky: Character) -> None:
-    """The whole body lowered until a hand is 3 cm into the floor (as a bend to the floor on shorter legs does):
-    the stage lifts the hands to the floor by turning the arms and leaves the feet no deeper than the input."""
-    sk, frames = bulky.skeleton, 6
-    parts = body_parts(bulky, mapping_by_name(sk.names))
+def _hands_in_floor(ch: Character, frames: int) -> tuple[Motion, torch.Tensor, torch.Tensor]:
+    """The rest pose lowered until a hand is 3 cm into the floor, and the hands' and feet's vertices."""
+    sk = ch.skeleton
+    parts = body_parts(ch, mapping_by_name(sk.names))
     hands = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftHand", "RightHand")])
     feet = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftFoot", "RightFoot")])
     rest = Motion(sk, 30.0, sk.rest_rotations.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone())
     t = rest.translations.clone()
-    t[:, 0, 1] -= _lowest(bulky, rest, hands) + 0.03
+    t[:, 0, 1] -= _lowest(ch, rest, hands) + 0.03
     before = Motion(sk, 30.0, rest.rotations, t, "hands_in_floor")
-    assert _lowest(bulky, before, hands) == pytest.approx(-0.03, abs=1e-4)
+    assert _lowest(ch, before, hands) == pytest.approx(-0.03, abs=1e-4)
+    return before, hands, feet
+
+
+def test_hands_through_the_floor_are_left_to_the_body_lift_and_the_feet_go_no_lower(bulky: Character) -> None:
+    """Hands 3 cm into the floor (a cartwheel on a capture that sinks, a bend to the floor on shorter legs), the
+    feet far below it, an end-effector pull that asks for nothing else: the stage turns no arm up (the floor stage
+    lifts the whole body, keeping the pose) and puts no hand or foot deeper than the input had it."""
+    before, hands, feet = _hands_in_floor(bulky, 6)
     out = resolve(_context(bulky, before), before)
-    assert _lowest(bulky, out.motion, hands) > -0.005, out.report
+    lowest = _lowest(bulky, out.motion, hands)
+    assert -0.032 <= lowest < -0.025, out.report
     assert _lowest(bulky, out.motion, feet) >= _lowest(bulky, before, feet) - 0.002
 
 
