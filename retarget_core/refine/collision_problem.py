@@ -1,6 +1,6 @@
 """What the collision stage optimises and toward what: the optimised joints and frames with their B-spline
 residual basis (:class:`Problem`), the frames that need it, the end effectors' targets and weights, and the floor
-points of the feet."""
+points of the hands and feet."""
 
 from __future__ import annotations
 
@@ -55,13 +55,14 @@ class Problem:
 
 
 
-GROUND_SEGMENTS: tuple[str, ...] = ("LeftFoot", "RightFoot", "LeftToeBase", "RightToeBase")
+GROUND_SEGMENTS: tuple[str, ...] = ("LeftHand", "RightHand", "LeftFoot", "RightFoot", "LeftToeBase", "RightToeBase")
 
 
 @dataclass
 class Ground:
-    """Floor points of the feet: ``vertex (G,)`` character vertices, ``floor (F, G)`` their lowest allowed height
-    (0, or the input's height where a foot is already below the floor), ``low (F,)`` the input's lowest."""
+    """Floor points of the hands and feet: ``vertex (G,)`` character vertices, ``floor (F, G)`` their lowest allowed
+    height (feet: 0, or the input's height where a foot is already below the floor; hands: ``-inf``, none),
+    ``low (F,)`` the input's lowest."""
 
     vertex: Tensor
     floor: Tensor
@@ -69,11 +70,12 @@ class Ground:
 
 
 def ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: CollisionParams, scale: float) -> Ground:
-    """The feet's floor points (:class:`Ground`) on the input ``rot_in (F, J, 4)``, ``trans (F, J, 3)``: the
-    stage's turns (the end-effector pull toward the source's hips-relative positions, legs turned out of the arms)
-    may not put a foot through the floor, nor one already below it deeper. Hands have none: where the copy's hand
-    is below the floor (a cartwheel on a capture that sinks, a bend to the floor on shorter legs) the floor stage
-    lifts the whole body, which keeps the pose (turning the arms up cost 1 to 5 cm of end-effector error there)."""
+    """The floor points (:class:`Ground`) on the input ``rot_in (F, J, 4)``, ``trans (F, J, 3)``: the stage's
+    turns (the end-effector pull toward the source's hips-relative positions, legs turned out of the arms) may not
+    put a foot through the floor, nor one already below it deeper. The hands' points bound nothing (they stay among
+    the points the optimiser sees, which a hand's contacts need): where the copy's hand is below the floor (a
+    cartwheel on a capture that sinks, a bend to the floor on shorter legs) the floor stage lifts the whole body,
+    which keeps the pose (turning the arms up cost 1 to 5 cm of end-effector error there)."""
     segs = [s for n in GROUND_SEGMENTS if (s := ctx.parts.find(n)) is not None]
     if not segs:
         e = torch.zeros(0, dtype=torch.long)
@@ -82,7 +84,9 @@ def ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: Col
     poser = PointPoser(ctx.target, pts, ctx.parts.joints)
     with torch.no_grad():
         y = poser(roma.unitquat_to_rotmat(rot_in), trans)[0][..., 1]  # (F, G)
-    return Ground(pts, torch.clamp(y, max=0.0), y.amin(1) if y.shape[1] else torch.zeros(len(rot_in)))
+    is_hand = torch.tensor([ctx.parts.names[int(p)].endswith("Hand") for p in ctx.parts.vertex_part[pts]])
+    floor = torch.where(is_hand[None], -torch.inf, torch.clamp(y, max=0.0))  # hand points: sentinels, no floor
+    return Ground(pts, floor, y.amin(1) if y.shape[1] else torch.zeros(len(rot_in)))
 
 
 def exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
@@ -96,7 +100,7 @@ def exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:
 
 def active_frames(check: FrameCheck, contacts: ContactInstances, frames: int, params: CollisionParams, scale: float,
                    fps: float = 30.0, low: Tensor | None = None) -> Tensor:  # fmt: skip
-    """Frames to optimise: penetrating, in contact or with a foot below the floor (``low (F,)``, m),
+    """Frames to optimise: penetrating, in contact or with a hand or foot below the floor (``low (F,)``, m),
     dilated by the margin."""
     marked = torch.zeros(frames, dtype=torch.bool)
     marked[check.frames[check.max_depth * scale > params.penetration_tolerance_m]] = True
