@@ -135,7 +135,7 @@ def measure_source(
     f_n = source_view.num_frames
     per_frame = REFERENCE_FPS / source_view.fps  # a step per clip frame -> per 1/30 s is step / per_frame
     parts = sdf.parts
-    measures = measure_clip(body, mapping, sdf, source_view)
+    measures = measure_clip(body, mapping, sdf, source_view, deep_causes=False)  # the source's deep frames' causes: unused
     depth = measures.depths  # (F, V), nonzero entries
     tol = MetricParams().penetration_tolerance_m / k
     by_part = (penetration_by_part(depth, measures.vertex_cluster, tol, measures.num_vertices)

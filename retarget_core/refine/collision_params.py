@@ -65,9 +65,9 @@ class CollisionParams:
     mesh_near_m: float = 0.01  # arm and head vertices this close outside the posed torso are kept out too
     judged_pairs_only: bool = True  # resolve only the pairs the judge tests (no torso vertices)
     use_mesh: bool = True  # test arms and head against the posed torso mesh
-    w_ground: float = 20.0  # a foot point below the floor, or deeper than the input had it (hands: the floor stage)
-    ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell (the hands' bound nothing)
-    ground_tolerance_m: float = 0.002  # frames with a hand or foot point this far below the floor are optimised
+    w_ground: float = 20.0  # a foot point below the floor or deeper than the input had it; a hand below it beside a plant
+    ground_cell_m: float = 0.02  # hands and feet: one floor point per 2 cm cell
+    ground_tolerance_m: float = 0.002  # frames with a bounded point this far below the floor are optimised
     w_contact: float = 20.0  # a hand off its contact weighs like a deep penetration
     judged_contacts: bool = True  # source contacts the detector missed (a hand within 1.5 cm) are held too ...
     held_contact_gap_m: float = 0.015  # ... within this of their part

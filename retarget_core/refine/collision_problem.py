@@ -17,6 +17,7 @@ from retarget_core.geometry.point_poser import PointPoser, rotvec_to_matrix
 from retarget_core.geometry.triples import sentinel_vertices
 from retarget_core.refine.collision_check import ContactInstances, FrameCheck
 from retarget_core.refine.collision_params import CollisionParams, at_fps
+from retarget_core.refine.floor import planted_feet
 
 
 @dataclass
@@ -61,8 +62,9 @@ GROUND_SEGMENTS: tuple[str, ...] = ("LeftHand", "RightHand", "LeftFoot", "RightF
 @dataclass
 class Ground:
     """Floor points of the hands and feet: ``vertex (G,)`` character vertices, ``floor (F, G)`` their lowest allowed
-    height (feet: 0, or the input's height where a foot is already below the floor; hands: ``-inf``, none),
-    ``low (F,)`` the input's lowest."""
+    height (feet: 0, or the input's height where a foot is already below the floor; hands: 0 on frames where the
+    source has a foot planted, else ``-inf``, none),
+    ``low (F,)`` the input's lowest bounded point, at most 0."""
 
     vertex: Tensor
     floor: Tensor
@@ -72,10 +74,11 @@ class Ground:
 def ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: CollisionParams, scale: float) -> Ground:
     """The floor points (:class:`Ground`) on the input ``rot_in (F, J, 4)``, ``trans (F, J, 3)``: the stage's
     turns (the end-effector pull toward the source's hips-relative positions, legs turned out of the arms) may not
-    put a foot through the floor, nor one already below it deeper. The hands' points bound nothing (they stay among
-    the points the optimiser sees, which a hand's contacts need): where the copy's hand is below the floor (a
-    cartwheel on a capture that sinks, a bend to the floor on shorter legs) the floor stage lifts the whole body,
-    which keeps the pose (turning the arms up cost 1 to 5 cm of end-effector error there)."""
+    put a foot through the floor, nor one already below it deeper. A hand below the floor is turned up by its arm
+    only beside a planted foot (a bend to the floor on shorter legs), where the floor stage may not lift the body off
+    that foot; elsewhere (a cartwheel on a capture that sinks) its points bound nothing, and the floor stage's lift
+    of the whole body keeps the pose (turning the arms up there cost 1 to 5 cm of end-effector error). The hands'
+    points stay among the optimiser's points either way: a hand's contacts need them."""
     segs = [s for n in GROUND_SEGMENTS if (s := ctx.parts.find(n)) is not None]
     if not segs:
         e = torch.zeros(0, dtype=torch.long)
@@ -85,8 +88,10 @@ def ground_points(ctx: RefineContext, rot_in: Tensor, trans: Tensor, params: Col
     with torch.no_grad():
         y = poser(roma.unitquat_to_rotmat(rot_in), trans)[0][..., 1]  # (F, G)
     is_hand = torch.tensor([ctx.parts.names[int(p)].endswith("Hand") for p in ctx.parts.vertex_part[pts]])
-    floor = torch.where(is_hand[None], -torch.inf, torch.clamp(y, max=0.0))  # hand points: sentinels, no floor
-    return Ground(pts, floor, y.amin(1) if y.shape[1] else torch.zeros(len(rot_in)))
+    held = is_hand[None] & planted_feet(ctx).any(-1)[: len(y), None]  # (F, G): hands beside a planted foot
+    floor = torch.where(is_hand[None], torch.where(held, 0.0, -torch.inf), torch.clamp(y, max=0.0))
+    bounded = torch.where(torch.isfinite(floor), y, torch.inf)  # a hand free of the floor marks no frame
+    return Ground(pts, floor, bounded.amin(1).clamp(max=0.0) if y.shape[1] else torch.zeros(len(rot_in)))
 
 
 def exempt_table(ctx: RefineContext, contacts: ContactInstances) -> Tensor:

@@ -40,7 +40,8 @@ class Terms:
 
 @dataclass
 class GroundTerms:
-    """Foot points kept above the floor (hands: a floor of ``-inf``), per (frame, point) row ``(N,)``: ``frame`` optimised frame,
+    """Foot points kept above the floor, hands beside a planted foot too (else a floor of ``-inf``), per (frame,
+    point) row ``(N,)``: ``frame`` optimised frame,
     ``point`` index into the poser's points, ``floor`` the height (m) it may not go below."""
 
     frame: Tensor

@@ -3,7 +3,7 @@ root lift of least jerk.
 
 Why: on cartwheels, kneeling and dance drops the capture itself goes below its floor while its planted feet stand
 on it, so the copy and every stage after it inherit a body 2 to 10 cm under y = 0 on those frames (the collision
-stage keeps feet from going deeper and turns no hand up; the foot lock lifts the body only by its free feet's
+stage keeps feet from going deeper and turns a hand up only beside a planted foot; the foot lock lifts the body only by its free feet's
 depth). A lift that follows each frame's depth exactly, or fades in over a few frames, adds jerk (a probe,
 docs/results.md: jerk ratio 1.10 -> 1.16 to 1.38). Here the lift ``L (F,)`` is the bounded least-squares solution
 of

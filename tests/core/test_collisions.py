@@ -4,6 +4,7 @@ smooth on a real clip, and reads a chin sunk into the chest as worse than an upr
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -224,13 +225,20 @@ def _lowest(ch: Character, m: Motion, vertices: torch.Tensor) -> float:
     return float(ch.pose_vertices(grot, gpos)[:, vertices, 1].min())
 
 
-def _hands_in_floor(ch: Character, frames: int) -> tuple[Motion, torch.Tensor, torch.Tensor]:
-    """The rest pose lowered until a hand is 3 cm into the floor, and the hands' and feet's vertices."""
+def _hands_in_floor(ch: Character, frames: int, arms_forward_deg: float = 0.0) -> tuple[Motion, torch.Tensor, torch.Tensor]:
+    """The rest pose, its arms turned ``arms_forward_deg`` forward about the world x axis, lowered until a hand is
+    3 cm into the floor, and the hands' and feet's vertices."""
     sk = ch.skeleton
     parts = body_parts(ch, mapping_by_name(sk.names))
     hands = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftHand", "RightHand")])
     feet = torch.cat([parts.part_vertices(parts.index(n)) for n in ("LeftFoot", "RightFoot")])
-    rest = Motion(sk, 30.0, sk.rest_rotations.expand(frames, -1, -1).clone(), sk.rest_translations.expand(frames, -1, -1).clone())
+    r = sk.rest_rotations.expand(frames, -1, -1).clone()
+    g_rest, _ = sk.rest_global()
+    turn = rot.axis_angle(torch.tensor([1.0, 0.0, 0.0]), torch.tensor(-float(np.radians(arms_forward_deg))))
+    for name in ("LeftArm", "RightArm"):
+        j, up = sk.names.index(name), g_rest[sk.parents[sk.names.index(name)]]
+        r[:, j] = rot.mul(rot.mul(rot.inv(up), rot.mul(turn, up)), r[:, j])
+    rest = Motion(sk, 30.0, r, sk.rest_translations.expand(frames, -1, -1).clone())
     t = rest.translations.clone()
     t[:, 0, 1] -= _lowest(ch, rest, hands) + 0.03
     before = Motion(sk, 30.0, rest.rotations, t, "hands_in_floor")
@@ -246,6 +254,17 @@ def test_hands_through_the_floor_are_left_to_the_body_lift_and_the_feet_go_no_lo
     out = resolve(_context(bulky, before), before)
     lowest = _lowest(bulky, out.motion, hands)
     assert -0.032 <= lowest < -0.025, out.report
+    assert _lowest(bulky, out.motion, feet) >= _lowest(bulky, before, feet) - 0.002
+
+
+def test_hands_through_the_floor_beside_a_planted_foot_are_lifted_by_the_arms(bulky: Character) -> None:
+    """Hands 3 cm into the floor while the source has both feet planted (a bend to the floor on shorter legs): the
+    floor stage may not lift the body off its planted feet, so the stage turns the arms to take the hands out of the
+    floor, and puts no foot deeper than the input had it."""
+    before, hands, feet = _hands_in_floor(bulky, 6, arms_forward_deg=70.0)
+    ctx = dataclasses.replace(_context(bulky, before), planted=torch.ones(6, 2, dtype=torch.bool))
+    out = resolve(ctx, before)
+    assert _lowest(bulky, out.motion, hands) > -0.005, out.report
     assert _lowest(bulky, out.motion, feet) >= _lowest(bulky, before, feet) - 0.002
 
 
