@@ -46,7 +46,7 @@ def one_pass(ctx: Any, motion: Motion, side: int, deeper_cm: float, p: hc.HandCo
     rb = reach_body(ctx.target, ctx.target_mapping)
     src, every = hc.source_groups(ctx), torch.arange(motion.num_frames)
     state, inside = hc.measure_both(ctx, rb, motion, src, p, every)
-    want, step = hc.pass_moves(src, state, inside, motion, arms, rb.scale, p)
+    want, step = hc.pass_moves(src, state, inside, motion, arms, rb.scale, p, hc.group_bones(ctx))
     _, after = hc.measure_both(ctx, rb, hc.apply_moves(motion, arms, step, p.max_reach), src, p, every)
     cm = 100.0 / rb.scale
     rows = []

@@ -11,9 +11,11 @@ moved by its wrist, with the arm's two-bone IK keeping the elbow's swivel and th
 1. Wanted moves ``(F, 2, 3)``: per frame and hand, for each part the judge tests it against (head, torso, the
    other arm, the legs), toward the part where the source touches it (within ``contact_m``) and the result is
    farther than ``lost_m``, to ``goal_m`` from it, along the closest pair; away from it where the source is far
-   (beyond ``far_m``) and the result is within ``clear_m``, to ``clear_m``; out of a part the hand is deeper
-   than ``out_m`` in, to its surface (a hand pressed into a bigger thigh or belly: the judge counts its vertices;
-   :mod:`retarget_core.contacts.hand_depth`); the parts' moves summed, at most ``max_move_m``.
+   (beyond ``far_m``) and the result is within ``clear_m`` (or in it), to ``clear_m``, along the way out from the
+   part's bones (:mod:`retarget_core.contacts.part_axes`: a grazing hand's closest pair points any way); out of a
+   part the hand is deeper than ``out_m`` in, to its surface (a hand pressed into a bigger thigh or belly: the
+   judge counts its vertices; :mod:`retarget_core.contacts.hand_depth`); the parts' moves summed, at most
+   ``max_move_m``.
 2. Smooth in time: per hand, a weighted Gaussian mean of the wanted moves (weight 1 where a move is wanted,
    ``hold_weight`` where a touching hand is near enough and is not to be pressed in, ``free_weight`` elsewhere):
    a weighted mean never overshoots, and it is as smooth as the Gaussian whatever the weights.
@@ -36,6 +38,7 @@ from torch import Tensor
 from retarget_core import rotations as rot
 from retarget_core.contacts.hand_depth import HandDepth, hand_depths, hand_tests
 from retarget_core.contacts.hand_reach import PosedParts, Reach, ReachBody, hand_reach, posed_chunks, reach_body
+from retarget_core.contacts.part_axes import away_from_bones, part_bones
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.metrics.acceptance_body import CONTACT_PARTS, HANDS, PARTS, REFERENCE_HEIGHT_M, contact_targets
 from retarget_core.motion import Motion
@@ -78,6 +81,24 @@ def contact_groups(side: int) -> list[list[int]]:
     """Indices into :data:`PARTS` of the judge's contact parts of hand ``side`` (:data:`CONTACT_PARTS` order:
     head, torso, the other arm, the legs)."""
     return [[PARTS.index(p) for p in parts] for parts in contact_targets(HANDS[side]).values()]
+
+
+def group_bones(ctx: RefineContext) -> list[list[Tensor]]:
+    """Per hand side and contact group (:func:`contact_groups`): ``(B, 2)`` the bones of the group's parts
+    (:func:`retarget_core.contacts.part_axes.part_bones`)."""
+    bones = part_bones(ctx.target_mapping.joints)
+    return [[torch.cat([bones[PARTS[i]] for i in group]) for group in contact_groups(side)] for side in range(2)]
+
+
+def away_from_groups(motion: Motion, state: HandState, bones: list[list[Tensor]]) -> Tensor:
+    """``(F, 2, 4, 3)`` per hand and contact group, the unit way from the group's bones (:func:`group_bones`) to
+    the hand's point nearest the group (``state.hand_point``); zero where not measured."""
+    gpos = motion.global_transforms()[1]
+    out = torch.zeros_like(state.hand_point)
+    for side in range(2):
+        for g, b in enumerate(bones[side]):
+            out[:, side, g] = away_from_bones(state.hand_point[:, side, g, None], gpos, b)[:, 0]
+    return out
 
 
 def source_groups(ctx: RefineContext) -> Tensor:
@@ -209,21 +230,24 @@ def grip_apart(inside: HandDepth, wrists: Tensor | None, deeper_than: float) -> 
     return out
 
 
-def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
-                 p: HandContactParams) -> tuple[Tensor, Tensor]:  # fmt: skip
+def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float, p: HandContactParams,
+                 away: Tensor | None = None) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Wrist moves ``(F, 2, 3)`` (body scale) toward the parts the source touches and away from those it stays
-    clear of (module doc, step 1), and out of the parts a hand is deeper than ``out_m`` in (``inside``), and
-    ``(F, 2)`` how much each frame's move counts in the smoothing: ``hold_weight`` where a touching hand is near
-    enough (no move: it is not pressed in), 1 where a move is wanted, ``free_weight`` elsewhere; ``scale``: body
-    lengths per length at 1.80 m."""
+    clear of (module doc, step 1; ``away (F, 2, 4, 3)`` the unit way out of each part from its bones,
+    :func:`away_from_groups`; None: from the nearest surface point, where the hand is off it), and out of the parts
+    a hand is deeper than ``out_m`` in (``inside``), and ``(F, 2)`` how much each frame's move counts in the
+    smoothing: ``hold_weight`` where a touching hand is near enough (no move: it is not pressed in), 1 where a move
+    is wanted, ``free_weight`` elsewhere; ``scale``: body lengths per length at 1.80 m."""
     d = state.distance / scale
     gap = state.surface_point - state.hand_point
     unit = torch.nan_to_num(gap / gap.norm(dim=-1, keepdim=True).clamp_min(1e-12))
     touch = (src < p.contact_m) & torch.isfinite(d)
     pull = touch & (d > p.lost_m)
-    push = (src > p.far_m) & (d > 0.0) & (d < p.clear_m)
-    step = torch.where(pull, d - p.goal_m, torch.where(push, d - p.clear_m, torch.zeros_like(d)))
-    move = (unit * torch.nan_to_num(step * scale)[..., None]).sum(dim=2)  # (F, 2, 3)
+    push = (src > p.far_m) & (d >= (0.0 if away is not None else 1e-12)) & (d < p.clear_m)
+    away = -unit if away is None else away
+    toward = torch.nan_to_num(torch.where(pull, d - p.goal_m, 0.0) * scale)[..., None]
+    off = torch.nan_to_num(torch.where(push, p.clear_m - d, 0.0) * scale)[..., None]
+    move = (unit * toward + away * off).sum(dim=2)  # (F, 2, 3)
     deep = (inside.depth > p.out_m * scale).any(dim=2)
     move = move + kept_touching(inside.out_moves(p.out_m * scale), unit, touch, torch.nan_to_num((p.goal_m - d) * scale))
     size = move.norm(dim=-1, keepdim=True)
@@ -292,11 +316,12 @@ def apply_moves(motion: Motion, arms: list[Arm], moves: Tensor, max_reach: float
 
 
 def pass_moves(src: Tensor, state: HandState, inside: HandDepth, motion: Motion, arms: list[Arm], scale: float,
-               p: HandContactParams) -> tuple[Tensor, Tensor]:  # fmt: skip
+               p: HandContactParams, bones: list[list[Tensor]]) -> tuple[Tensor, Tensor]:  # fmt: skip
     """One measure-and-move pass on ``motion`` as measured (``state``, ``inside``): the wanted wrist moves ``(F, 2,
-    3)`` (:func:`wanted_moves`, a grip's hands apart) and their smoothing in time ``(F, 2, 3)`` (body scale)."""
+    3)`` (:func:`wanted_moves`, a grip's hands apart, hands clear of parts along ``bones`` from
+    :func:`group_bones`) and their smoothing in time ``(F, 2, 3)`` (body scale)."""
     apart = grip_apart(inside, wrist_positions(motion, arms), p.out_m * scale)
-    want, weight = wanted_moves(src, state, apart, scale, p)
+    want, weight = wanted_moves(src, state, apart, scale, p, away_from_groups(motion, state, bones))
     return want, smooth_moves(want, weight, p.smooth_seconds * motion.fps)
 
 
@@ -317,9 +342,9 @@ def run(ctx: RefineContext, motion: Motion, params: HandContactParams | None = N
     deep_before = int((inside.depth > p.out_m * rb.scale).any(dim=2).any(dim=1).sum())
     before = contact_figures(src, state, rb.scale, p)
     total = torch.zeros(motion.num_frames, 2, 3, dtype=torch.float64)
-    moved_motion = motion
+    moved_motion, bones = motion, group_bones(ctx)
     for _ in range(p.passes):
-        want, step = pass_moves(src, state, inside, moved_motion, arms, rb.scale, p)
+        want, step = pass_moves(src, state, inside, moved_motion, arms, rb.scale, p, bones)
         if float(want.abs().max()) == 0.0:
             break
         total = total + step

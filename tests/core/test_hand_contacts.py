@@ -21,6 +21,7 @@ from retarget_core.contacts.correspondence import no_contacts
 from retarget_core.contacts.foot_contact import FootContacts
 from retarget_core.contacts.hand_depth import HandDepth, hand_depths
 from retarget_core.contacts.hand_reach import PosedParts, ReachBody, hand_reach, posed_for_reach, reach_body
+from retarget_core.contacts.part_axes import away_from_bones
 from retarget_core.contacts.self_contact import SelfContacts
 from retarget_core.context import RefineContext
 from retarget_core.loading import load_character
@@ -254,6 +255,50 @@ def test_a_hand_clear_in_the_source_is_moved_clear_of_the_torso(skinny) -> None:
     after = _judged(ch, mapping, out.motion, list(range(0, FRAMES, 5)))
     assert (after[:, RIGHT, torso] >= 0.01).all()
     assert out.report["false_contacts_after"] < out.report["false_contacts_before"]
+
+
+@pytest.mark.parametrize("clearance", [0.00002, -0.003])
+def test_a_hand_grazing_or_in_a_part_the_source_keeps_clear_is_moved_clear_of_it(skinny, clearance: float) -> None:  # type: ignore[no-untyped-def]
+    """A hand grazing the thigh (20 micrometres off it), or 3 mm into it, where the source holds it far from the
+    legs: the hand ends clear of them, as the judge reads it, on every frame."""
+    ch, mapping, rb = skinny
+    source = _rest(ch)
+    legs = CONTACT_PARTS.index("legs")
+    assert _judged(ch, mapping, source, [0])[0, LEFT, legs] > 0.05  # clear of the legs in the source
+    target = _placed(ch, mapping, rb, source, LEFT, "left_leg", clearance)
+    assert _judged(ch, mapping, target, [0])[0, LEFT, legs] < 0.001  # a false contact as the judge reads it
+    out = hand_contacts.run(_context(ch, mapping, source, target), target)
+    after = _judged(ch, mapping, out.motion, list(range(0, FRAMES, 5)))
+    assert (after[:, LEFT, legs] >= 0.01).all(), after[:, LEFT, legs]
+
+
+def test_a_hand_on_or_in_a_part_it_should_clear_is_moved_out_along_the_way_from_the_bones() -> None:
+    """The wanted move off a part the source keeps clear follows the way out from the part's bones, by what is
+    missing to ``clear_m``: also where the hand's nearest surface point gives no direction (the hand on the surface,
+    or in the part, distance 0: the stage used to leave such a hand where it was, or push it one way, then back)."""
+    p = hand_contacts.HandContactParams()
+    src = torch.full((1, 2, 4), float("inf"), dtype=torch.float64)  # the source far from every part
+    nan = torch.full((1, 2, 4, 3), float("nan"), dtype=torch.float64)
+    distance = torch.full((1, 2, 4), float("inf"), dtype=torch.float64)
+    legs = CONTACT_PARTS.index("legs")
+    distance[0, LEFT, legs] = 0.0
+    hand_point, surface_point = nan.clone(), nan.clone()
+    hand_point[0, LEFT, legs] = surface_point[0, LEFT, legs] = torch.tensor([0.2, 0.5, 0.0], dtype=torch.float64)
+    state = hand_contacts.HandState(distance, hand_point, surface_point)
+    away = torch.zeros(1, 2, 4, 3, dtype=torch.float64)
+    away[0, LEFT, legs] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    move, weight = hand_contacts.wanted_moves(src, state, HandDepth.empty(1), 1.0, p, away)
+    assert torch.allclose(move[0, LEFT], torch.tensor([p.clear_m, 0.0, 0.0], dtype=torch.float64))
+    assert float(weight[0, LEFT]) == 1.0 and torch.equal(move[0, RIGHT], torch.zeros(3, dtype=torch.float64))
+
+
+def test_the_way_out_of_a_part_runs_from_its_nearest_bone() -> None:
+    gpos = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]]], dtype=torch.float64)  # two bones, an L
+    bones = torch.tensor([[0, 1], [1, 2], [2, 2]])
+    points = torch.tensor([[[0.1, 0.5, 0.0], [0.5, 1.2, 0.0], [1.5, 1.0, 0.0], [0.0, 0.5, 0.0]]], dtype=torch.float64)
+    way = away_from_bones(points, gpos, bones)[0]
+    assert torch.allclose(way[:3], torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64))
+    assert torch.equal(way[3], torch.zeros(3, dtype=torch.float64))  # on a bone: no way out read
 
 
 def test_the_moves_smoothing_follows_defined_frames_and_never_overshoots() -> None:
