@@ -63,8 +63,7 @@ GROUND_SEGMENTS: tuple[str, ...] = ("LeftHand", "RightHand", "LeftFoot", "RightF
 class Ground:
     """Floor points of the hands and feet: ``vertex (G,)`` character vertices, ``floor (F, G)`` their lowest allowed
     height (feet: 0, or the input's height where a foot is already below the floor; hands: 0 on frames where the
-    source has a foot planted, else ``-inf``, none),
-    ``low (F,)`` the input's lowest bounded point, at most 0."""
+    source has a foot planted, else ``-inf``, no bound), ``low (F,)`` the input's lowest bounded point, at most 0."""
 
     vertex: Tensor
     floor: Tensor

@@ -41,8 +41,8 @@ class Terms:
 @dataclass
 class GroundTerms:
     """Foot points kept above the floor, hands beside a planted foot too (else a floor of ``-inf``), per (frame,
-    point) row ``(N,)``: ``frame`` optimised frame,
-    ``point`` index into the poser's points, ``floor`` the height (m) it may not go below."""
+    point) row ``(N,)``: ``frame`` optimised frame, ``point`` index into the poser's points, ``floor`` the height (m)
+    it may not go below."""
 
     frame: Tensor
     point: Tensor
