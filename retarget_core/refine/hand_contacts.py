@@ -243,7 +243,8 @@ def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
     unit = torch.nan_to_num(gap / gap.norm(dim=-1, keepdim=True).clamp_min(1e-12))
     touch = (src < p.contact_m) & torch.isfinite(d)
     pull = touch & (d > p.lost_m)
-    push = (src > p.far_m) & (d >= (0.0 if away is not None else 1e-12)) & (d < p.clear_m)
+    has_way = d >= 0.0 if away is not None else d > 0.0  # at distance 0 the surface gives no way out
+    push = (src > p.far_m) & has_way & (d < p.clear_m)
     away = -unit if away is None else away
     toward = torch.nan_to_num(torch.where(pull, d - p.goal_m, 0.0) * scale)[..., None]
     off = torch.nan_to_num(torch.where(push, p.clear_m - d, 0.0) * scale)[..., None]
