@@ -90,10 +90,10 @@ def group_bones(ctx: RefineContext) -> list[list[Tensor]]:
     return [[torch.cat([bones[PARTS[i]] for i in group]) for group in contact_groups(side)] for side in range(2)]
 
 
-def away_from_groups(motion: Motion, state: HandState, bones: list[list[Tensor]]) -> Tensor:
-    """``(F, 2, 4, 3)`` per hand and contact group, the unit way from the group's bones (:func:`group_bones`) to
-    the hand's point nearest the group (``state.hand_point``); zero where not measured."""
-    gpos = motion.global_transforms()[1]
+def away_from_groups(gpos: Tensor, state: HandState, bones: list[list[Tensor]]) -> Tensor:
+    """``(F, 2, 4, 3)`` per hand and contact group, the unit way from the group's bones (:func:`group_bones`; world
+    joint positions ``gpos (F, J, 3)``) to the hand's point nearest the group (``state.hand_point``); zero where not
+    measured."""
     out = torch.zeros_like(state.hand_point)
     for side in range(2):
         for g, b in enumerate(bones[side]):
@@ -203,12 +203,13 @@ def _write_depths(out: HandDepth, frames: Tensor, got: HandDepth) -> None:
     out.depth[frames], out.hand_point[frames], out.surface_point[frames] = got.depth, got.hand_point, got.surface_point
 
 
-def wrist_positions(motion: Motion, arms: list[Arm]) -> Tensor | None:
-    """``(F, 2, 3)`` the left and right wrists' world positions (None unless both arms are mapped)."""
+def wrist_positions(gpos: Tensor, arms: list[Arm]) -> Tensor | None:
+    """``(F, 2, 3)`` the left and right wrists' world positions, of the joints' ``gpos (F, J, 3)`` (None unless both
+    arms are mapped)."""
     if len(arms) != 2:
         return None
     hands = [a.hand for a in sorted(arms, key=lambda a: a.side)]
-    return motion.global_transforms()[1][:, hands].double()
+    return gpos[:, hands].double()
 
 
 def grip_apart(inside: HandDepth, wrists: Tensor | None, deeper_than: float) -> HandDepth:
@@ -231,10 +232,10 @@ def grip_apart(inside: HandDepth, wrists: Tensor | None, deeper_than: float) -> 
 
 
 def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float, p: HandContactParams,
-                 away: Tensor | None = None) -> tuple[Tensor, Tensor]:  # fmt: skip
+                 away: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Wrist moves ``(F, 2, 3)`` (body scale) toward the parts the source touches and away from those it stays
     clear of (module doc, step 1; ``away (F, 2, 4, 3)`` the unit way out of each part from its bones,
-    :func:`away_from_groups`; None: from the nearest surface point, where the hand is off it), and out of the parts
+    :func:`away_from_groups`: defined also where the hand is on or in the part), and out of the parts
     a hand is deeper than ``out_m`` in (``inside``), and ``(F, 2)`` how much each frame's move counts in the
     smoothing: ``hold_weight`` where a touching hand is near enough (no move: it is not pressed in), 1 where a move
     is wanted, ``free_weight`` elsewhere; ``scale``: body lengths per length at 1.80 m."""
@@ -243,9 +244,7 @@ def wanted_moves(src: Tensor, state: HandState, inside: HandDepth, scale: float,
     unit = torch.nan_to_num(gap / gap.norm(dim=-1, keepdim=True).clamp_min(1e-12))
     touch = (src < p.contact_m) & torch.isfinite(d)
     pull = touch & (d > p.lost_m)
-    has_way = d >= 0.0 if away is not None else d > 0.0  # at distance 0 the surface gives no way out
-    push = (src > p.far_m) & has_way & (d < p.clear_m)
-    away = -unit if away is None else away
+    push = (src > p.far_m) & (d < p.clear_m)  # distance 0 (in the part) included: ``away`` gives its way out
     toward = torch.nan_to_num(torch.where(pull, d - p.goal_m, 0.0) * scale)[..., None]
     off = torch.nan_to_num(torch.where(push, p.clear_m - d, 0.0) * scale)[..., None]
     move = (unit * toward + away * off).sum(dim=2)  # (F, 2, 3)
@@ -321,8 +320,9 @@ def pass_moves(src: Tensor, state: HandState, inside: HandDepth, motion: Motion,
     """One measure-and-move pass on ``motion`` as measured (``state``, ``inside``): the wanted wrist moves ``(F, 2,
     3)`` (:func:`wanted_moves`, a grip's hands apart, hands clear of parts along ``bones`` from
     :func:`group_bones`) and their smoothing in time ``(F, 2, 3)`` (body scale)."""
-    apart = grip_apart(inside, wrist_positions(motion, arms), p.out_m * scale)
-    want, weight = wanted_moves(src, state, apart, scale, p, away_from_groups(motion, state, bones))
+    gpos = motion.global_transforms()[1]
+    apart = grip_apart(inside, wrist_positions(gpos, arms), p.out_m * scale)
+    want, weight = wanted_moves(src, state, apart, scale, p, away_from_groups(gpos, state, bones))
     return want, smooth_moves(want, weight, p.smooth_seconds * motion.fps)
 
 
