@@ -65,6 +65,7 @@ METHODS["recurrent[pointnet]"] = ("recurrent",)
 METHOD_WEIGHTS["recurrent[pointnet]"] = MODELS_DIR / "recurrent-pointnet.pt"
 METHODS["full[eso12]"] = METHODS["full"]
 METHODS["full[no-network]"] = tuple(n for n in METHODS["full"] if n not in ("recurrent", "eso"))
+METHODS["full[no-eso]"] = tuple(n for n in METHODS["full"] if n != "eso")  # the network's output unoptimised
 METHOD_SETTINGS: dict[str, dict[str, int]] = {"full[eso12]": {"eso_iterations": 12}}
 """Methods that run their stages with other job options than the defaults (``full[eso12]``: the default chain
 with 12 ESO steps instead of 30, the speed/quality comparison in docs/model-recurrent.md)."""

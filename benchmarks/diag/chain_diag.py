@@ -11,7 +11,8 @@ copy's and the last stage's rows are that evaluation's figures for the case); ``
 its length. Optional ``--json`` writes the rows; ``--collisions KEY=VALUE`` (repeatable) runs the collision stage
 with that numeric setting of ``CollisionParams`` changed (e.g. ``planted_foot_ee_weight=0.5``, or one entry of
 a dict setting: ``end_effectors.LeftHand=2``); ``--hands KEY=VALUE`` the same for the hand contact stage's
-``HandContactParams`` (e.g. ``passes=2``).
+``HandContactParams`` (e.g. ``passes=2``); ``--contacts`` also prints, per hand and part, the source contacts
+kept and how far the lost ones are.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch
 
 from retarget_core.canonical import CANONICAL_JOINTS
 from retarget_core.metrics.acceptance import END_EFFECTORS, ClipAcceptance, figures_from_measures, measure_acceptance
+from retarget_core.metrics.acceptance_body import CONTACT_PARTS
 from retarget_core.motion import Motion
 from retarget_core.pipeline import refine_context
 from retarget_core.refine import collisions, hand_contacts, refinement_stages
@@ -56,10 +58,27 @@ def effector_errors(result: ClipAcceptance, source: ClipAcceptance) -> dict[str,
     return out
 
 
+def contact_table(result: ClipAcceptance, source: ClipAcceptance) -> dict[str, str]:
+    """Per (hand, contact part) with source contacts: ``kept/contacts`` and the result's median distance (cm at
+    1.80 m) on the lost ones, the judge's contact preservation taken apart."""
+    f_n = min(result.num_frames, source.num_frames)
+    d_src, d_res = source.hand_distance[:f_n], result.hand_distance[:f_n]
+    out = {}
+    for h, hand in enumerate(("L", "R")):
+        for c, part in enumerate(CONTACT_PARTS):
+            touch = d_src[:, h, c] < 0.015
+            if touch.any():
+                lost = d_res[touch, h, c] >= 0.025
+                med = f" lost@{100 * float(np.median(d_res[touch, h, c][lost])):.1f}" if lost.any() else ""
+                out[f"{hand}:{part}"] = f"{int((~lost).sum())}/{int(touch.sum())}{med}"
+    return out
+
+
 def main() -> None:
     ap = case_parser(__doc__)
     ap.add_argument("--collisions", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--hands", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--contacts", action="store_true", help="also print each hand's kept source contacts per part")
     a = ap.parse_args()
     overrides = setting_overrides(collisions.CollisionParams(), a.collisions)
     collision_params = collisions.CollisionParams(**overrides)
@@ -81,6 +100,8 @@ def main() -> None:
         rows.append(row)
         print(f"{stage:>12}: " + "  ".join(f"{k} {row[k]}" for k in FIGURES) + f"  ({seconds:.1f} s)", flush=True)
         print(f"{'':>12}  end effectors (cm): {row['end_effector_cm']}", flush=True)
+        if a.contacts:
+            print(f"{'':>12}  contacts kept: {contact_table(measured, source)}", flush=True)
 
     print(f"{a.clip.stem} x {Path(a.body).stem}, {prepared.before.num_frames} frames")
     report("copy", prepared.before, 0.0)
