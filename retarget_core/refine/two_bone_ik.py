@@ -7,7 +7,9 @@ The method of orangeduck's Motion-Matching ``ik_two_bone`` (see METHOD-NOTES.md)
    has a well-defined bending plane);
 2. swing: the shortest arc taking the bent chain's hip-to-ankle direction onto hip-to-target.
 The reach is clamped to ``max_reach`` times the full leg length (short of full extension, where the knee's
-angle is ill-conditioned and snaps), and never below a small fraction of it; no NaN for any input.
+angle is ill-conditioned and snaps) or to the leg's own extension in the pose given, whichever is longer (a leg
+the input holds straighter is not bent to the clamp: that bend, on a few frames, is a jerk at the knee), and
+never below a small fraction of it; no NaN for any input.
 """
 
 from __future__ import annotations
@@ -65,9 +67,11 @@ def two_bone_ik(
     far as that along the same direction). ``iterations``: passes of bend-then-swing (the first is exact for
     a bent knee; the second removes what a nearly straight knee's blended hinge axis leaves).
     """
+    full = ((knee - hip).norm(dim=-1) + (ankle - knee).norm(dim=-1)).clamp_min(EPS)
+    reach_cap = torch.clamp_min((ankle - hip).norm(dim=-1) / full, max_reach)  # (...) the input's own, or more
     for _ in range(iterations):
         hip_rotation, knee_rotation, knee, ankle = _solve(
-            hip, knee, ankle, target, pole, hip_rotation, knee_rotation, max_reach
+            hip, knee, ankle, target, pole, hip_rotation, knee_rotation, reach_cap
         )
     return hip_rotation, knee_rotation
 
@@ -79,16 +83,17 @@ POLE_WEIGHT = 0.05
 
 def _solve(
     hip: Tensor, knee: Tensor, ankle: Tensor, target: Tensor, pole: Tensor,
-    hip_rotation: Tensor, knee_rotation: Tensor, max_reach: float,
+    hip_rotation: Tensor, knee_rotation: Tensor, reach_cap: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
-    """One bend-then-swing pass; returns the new rotations and the new knee and ankle positions."""
+    """One bend-then-swing pass (``reach_cap (...)``: the largest reach as a share of the full length); returns
+    the new rotations and the new knee and ankle positions."""
     thigh, shin = knee - hip, ankle - knee
     l_thigh = thigh.norm(dim=-1).clamp_min(EPS)
     l_shin = shin.norm(dim=-1).clamp_min(EPS)
     full = l_thigh + l_shin
     reach_lo = torch.maximum(MIN_REACH_FRACTION * full, (l_thigh - l_shin).abs() * 1.001 + EPS)
     reach = (target - hip).norm(dim=-1)
-    reach = torch.minimum(torch.maximum(reach, reach_lo), max_reach * full)
+    reach = torch.minimum(torch.maximum(reach, reach_lo), reach_cap * full)
     # Hinge axis: the knee's plane (oriented so a positive turn straightens it), the pole where it is straight.
     plane = torch.cross(shin, thigh, dim=-1) / (l_thigh * l_shin)[..., None]
     chain = ankle - hip

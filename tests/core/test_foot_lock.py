@@ -104,7 +104,7 @@ def test_two_bone_ik_reaches_and_clamps() -> None:
     torch.manual_seed(0)
     n = 64
     hip = torch.zeros(n, 3)
-    knee = torch.tensor([0.0, -0.45, 0.05]).expand(n, 3)
+    knee = torch.tensor([0.0, -0.45, 0.1]).expand(n, 3)  # bent: the hip-to-ankle distance is 0.976 of the leg
     ankle = torch.tensor([0.0, -0.9, 0.0]).expand(n, 3)
     ident = rot.identity(n)
     full = float((knee - hip).norm(dim=-1)[0] + (ankle - knee).norm(dim=-1)[0])
@@ -124,6 +124,22 @@ def test_two_bone_ik_reaches_and_clamps() -> None:
     # A target at the hip itself: finite.
     a, b = two_bone_ik(hip, knee, ankle, hip.clone(), torch.tensor([0.0, 0.0, 1.0]).expand(n, 3), ident, ident)
     assert torch.isfinite(a).all() and torch.isfinite(b).all()
+
+
+def test_a_leg_straighter_than_the_clamp_keeps_its_own_extension() -> None:
+    """A leg the input holds straighter than ``max_reach`` (0.9997 of its length) is not bent to the clamp: a
+    target at its own ankle leaves it as it is, one beyond is reached as far as the leg's own extension (a knee
+    bent to the clamp on a few frames of a dance was a jerk; docs/results.md)."""
+    hip, knee, ankle = torch.zeros(1, 3), torch.tensor([[0.0, -0.45, 0.011]]), torch.tensor([[0.0, -0.9, 0.0]])
+    full = float((knee - hip).norm() + (ankle - knee).norm())
+    assert 0.9995 < 0.9 / full < 0.9999
+    pole, ident = torch.tensor([[0.0, 0.0, 1.0]]), rot.identity(1)
+    a, b = two_bone_ik(hip, knee, ankle, ankle.clone(), pole, ident, ident, max_reach=0.995)
+    _, reached = _chain(hip, knee, ankle, a, b)
+    assert float((reached - ankle).norm()) < 1e-5
+    a, b = two_bone_ik(hip, knee, ankle, torch.tensor([[0.0, -1.2, 0.0]]), pole, ident, ident, max_reach=0.995)
+    _, reached = _chain(hip, knee, ankle, a, b)
+    assert float(reached.norm()) == pytest.approx(0.9, abs=1e-5)
 
 
 @pytest.mark.parametrize("pole_z", [1.0, -1.0])
