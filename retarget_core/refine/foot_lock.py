@@ -15,7 +15,8 @@ re-checks the legs' collisions and reports them (it does not re-resolve them).
    *offset* added to the copy's own foot motion (not a blend toward a fixed point): a foot that lifts off
    keeps its own speed, so the frames the source calls "moving" still move (foot accuracy).
 4. IK: hip-knee-ankle analytic two-bone IK (:mod:`retarget_core.refine.two_bone_ik`) with the knee's own
-   forward axis as pole, reach clamped short of full extension; where a leg cannot reach its lock the pelvis
+   forward axis as pole, reach clamped short of full extension (or at the leg's own, where the input holds it
+   straighter: bent to the clamp on a few frames, a knee jerks); where a leg cannot reach its lock the pelvis
    is lowered, smoothly (a dilated, windowed drop that is never less than what each frame needs); frames that
    only the pelvis drop touches keep their feet where the copy had them.
 5. Floor: heights come from a rigid model of the foot's vertices (each on its dominant joint, Foot or
@@ -72,7 +73,8 @@ class FootLockParams:
     # Fade in/out of each lock: SAN blends +-5 frames at 30 fps, orangeduck inertialises over 0.1 s.
     blend_seconds: float = 0.15
     # Largest hip-to-ankle distance as a share of the leg's length: short of a locked knee (about an
-    # 11-degree bend at the knee), where the analytic solution's knee angle is ill-conditioned.
+    # 11-degree bend at the knee), where the analytic solution's knee angle is ill-conditioned; a leg the input
+    # holds straighter keeps its own extension (two_bone_ik).
     max_reach: float = 0.995
     # Lowest foot vertex of a locked foot above the floor: 1 mm keeps rounding from counting as ground
     # penetration; the judged float window is -5..+10 mm.
