@@ -64,8 +64,9 @@ def two_bone_ik(
     point (the knee's forward axis); hip_rotation, knee_rotation: current world rotations ``(..., 4)`` of the
     hip joint (thigh) and the knee joint (shin). Bone lengths are those of the current pose. ``max_reach``:
     the largest hip-to-target distance as a share of the leg's full length, or the leg's own hip-to-ankle share
-    where that is longer (targets beyond it are reached as far as that along the same direction). ``iterations``: passes of bend-then-swing (the first is exact for
-    a bent knee; the second removes what a nearly straight knee's blended hinge axis leaves).
+    where that is longer (targets beyond it are reached as far as that along the same direction).
+    ``iterations``: passes of bend-then-swing (the first is exact for a bent knee; the second removes what a
+    nearly straight knee's blended hinge axis leaves).
     """
     full = ((knee - hip).norm(dim=-1) + (ankle - knee).norm(dim=-1)).clamp_min(EPS)
     reach_cap = torch.clamp_min((ankle - hip).norm(dim=-1) / full, max_reach)  # (...) the input's own, or more
