@@ -48,9 +48,11 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("hand_contacts", "Hand contacts", "hands onto the parts they touch in the source, clear of the others",
               "retarget_core.refine.hand_contacts", 0.1),
     StageInfo("arm_swivel", "Elbow swivel", "arms turned about the shoulder-wrist line out of the body, hands kept",
-              "retarget_core.refine.arm_swivel", 0.25),
+              "retarget_core.refine.arm_swivel", 0.24),
     StageInfo("fingers", "Finger clearance", "fingers resting on the body turned onto its surface, not into it",
               "retarget_core.refine.fingers", 0.01),
+    StageInfo("props", "Props above the floor", "a prop on its own bone (a staff, a sword) turned at its grip above the floor",
+              "retarget_core.refine.props", 0.01),
 )  # fmt: skip
 """Why each default stands: docs/results.md (the held-out evaluation of the default chain and its variants)."""
 

@@ -294,8 +294,9 @@ def finger_joints(mapping: JointMapping, side: str = "") -> list[int]:
     return [j for n, j in mapping.extras.items() if n.startswith(f"{side}") and "Hand" in n]
 
 
-def test_the_stage_runs_last_in_the_default_chain() -> None:
-    assert REFINEMENT_STAGE_NAMES[-1] == "fingers" and RetargetOptions().stages.enabled("fingers")
+def test_the_stage_runs_after_every_stage_that_turns_a_body_joint() -> None:
+    """Only the props stage follows it: it turns a prop's own joint (a staff hung from a finger), no body joint."""
+    assert REFINEMENT_STAGE_NAMES[-2:] == ("fingers", "props") and RetargetOptions().stages.enabled("fingers")
 
 
 def test_the_stage_finds_every_finger_and_no_fingers_where_a_rig_has_none() -> None:

@@ -319,3 +319,26 @@ def test_ik_layout_feet_are_attached_below_their_shins(tmp_path: Path) -> None:
     low = c.vertices[:, 1] < 0.13  # the tube's last ring, at the ankle
     assert {sk.names[j] for j in dominant[low].tolist()} == {"Foot.L"}
     assert {m.name for m in c.meshes} == {"Witch_Body"}
+
+
+def test_cleric_staff_stays_above_the_floor(tmp_path: Path) -> None:
+    """The Cleric's staff, on a joint of its own under the fist, hangs below the floor on the copy of a walk's
+    turn (its hand at the hip); the default job turns it at the grip: the result's staff is above the floor on
+    every frame, and only its joint is keyed besides the driven ones (props stage, docs/meshes.md)."""
+    from retarget_core.refine.props import find_props
+
+    lc = load_character(rig_path(CLERIC.file))
+    staff = find_props(lc.character, lc.mapping)
+    assert [lc.character.skeleton.names[p.joint] for p in staff] == ["Weapon.R"]
+    options = RetargetOptions(frame_start=140, frame_end=240, fps=30.0)
+    outputs = run_job(JobInputs(SAMPLES / "motions" / "01_01_first600.bvh", rig_path(CLERIC.file), options=options), tmp_path)
+    to_cm = 180.0 / lc.character.height
+    lowest = {}
+    for name, glb in (("before", outputs.before_glb), ("after", outputs.result_glb)):
+        motion = read_gltf(glb).motions[0]
+        grot, gpos = motion.global_transforms()
+        lowest[name] = lc.character.pose_rows(staff[0].vertices, grot, gpos)[..., 1].min(dim=-1).values * to_cm
+    assert float(lowest["before"].min()) < -5.0
+    assert float(lowest["after"].min()) >= -0.5  # ACCEPTANCE.md: ground penetration at most 0.5 cm
+    report = json.loads(outputs.metrics_json.read_text())["context"]["stage_reports"]["props"]
+    assert report["props"] == ["Weapon.R"] and report["frames_changed"] > 0
