@@ -12,7 +12,6 @@ from torch import Tensor
 
 from retarget_core.character import Character
 from retarget_core.geometry.skin_rows import skin_rows
-from retarget_core.geometry.skinning_kernel import sparse_skinning
 from retarget_core.kinematics import SKINNING_CHUNK_BYTES, dense_weights
 
 
@@ -55,18 +54,10 @@ class PointPoser:
         return self.skin(mats), mats.index_select(1, self.seg_joints), gpos
 
     def skin(self, mats: Tensor) -> Tensor:
-        """Posed points ``(F, P, 3)`` from skinning transforms ``(F, J, 3, 4)``. Without gradients: on the CPU over
-        each point's own influences (compiled, summed in float64: within float32 rounding of the dense form, a
-        fraction of its work), elsewhere the dense form a chunk of frames at a time (a memory bound)."""
+        """Posed points ``(F, P, 3)`` from skinning transforms ``(F, J, 3, 4)``; without gradients, a chunk of
+        frames at a time (each frame's figures are the same: only the memory they take at once differs)."""
         if torch.is_grad_enabled() and mats.requires_grad:
             return self._skin(mats)
-        if mats.device.type == "cpu":
-            return sparse_skinning(self.rest, self.skin_joints, self.skin_weights, mats)
-        return self.skin_in_chunks(mats)
-
-    def skin_in_chunks(self, mats: Tensor) -> Tensor:
-        """The dense form of :meth:`skin` a chunk of frames at a time: each frame's figures are the same as all
-        frames at once, only the memory they take at once differs."""
         step = max(1, SKINNING_CHUNK_BYTES // max(1, 24 * mats.element_size() * len(self.points)))
         out = mats.new_empty(mats.shape[0], len(self.points), 3)
         for s in range(0, mats.shape[0], step):
