@@ -3,9 +3,9 @@ joint the canonical skeleton does not have, hung from a hand) turned at its grip
 floor (ACCEPTANCE.md: ground penetration reads the lowest vertex of the whole character).
 
 Why: a prop follows its bone's rest pose relative to the hand. A staff held upright in a game character's rest pose
-hangs down its length from a hand that the source holds at the hip: the hard split's Cleric has its staff below
-the floor on 108 of the 300 frames of CMU 02_06 (docs/meshes.md), and the floor stage cannot lift the body for it
-(accessories do not count there: the feet would float).
+hangs down its length from a hand that the source holds at the hip: the hard split's Cleric read a judged ground
+penetration of 10.4 cm on CMU 02_06 from its staff alone (docs/meshes.md), and the floor stage cannot lift the body
+for it (accessories do not count there: the feet would float).
 
 How, per prop (the topmost unmapped joint whose skin moves accessory vertices only) and frame where a vertex is
 more than ``sunk_m`` under the floor: the least turn either way about the prop's joint (its grip), about the
