@@ -33,6 +33,7 @@ from retarget_core.character import Character
 from retarget_core.context import RefineContext, StageOutcome, computes_on_cpu
 from retarget_core.motion import Motion
 from retarget_core.refine.floor import least_jerk_lift
+from retarget_core.refine.temporal import weighted_smooth
 from retarget_core.skeleton import subtree
 
 REFERENCE_HEIGHT_M = 1.80
@@ -166,16 +167,10 @@ def eased_turns(need: Tensor, room: Tensor, fps: float, p: PropParams) -> Tensor
         return need
     eased = least_jerk_lift(angle, room, fps, p.size_weight).clamp_min(0.0)
     eased = torch.where(eased < math.radians(p.least_turn_deg), 0.0, eased)
-    sigma = max(p.axis_sigma_seconds * fps, 1e-6)
-    radius = int(math.ceil(3 * sigma))
-    t = torch.arange(-radius, radius + 1, dtype=need.dtype)
-    window = torch.exp(-0.5 * (t / sigma) ** 2)
-    padded = torch.nn.functional.pad(need.T[:, None], (radius, radius))  # (3, 1, F + 2r)
-    mean = torch.nn.functional.conv1d(padded, window.view(1, 1, -1))[:, 0].T  # (F, 3)
-    return (
-        _nearest_filled(mean / mean.norm(dim=-1, keepdim=True).clamp_min(1e-12), mean.norm(dim=-1) > 1e-12)
-        * eased[:, None]
-    )
+    axis = need / angle[:, None].clamp_min(1e-12)
+    mean = weighted_smooth(axis, angle, p.axis_sigma_seconds * fps)  # (F, 3) zero far from any need
+    size = mean.norm(dim=-1)
+    return _nearest_filled(mean / size[:, None].clamp_min(1e-12), size > 1e-12) * eased[:, None]
 
 
 def _nearest_filled(axis: Tensor, known: Tensor) -> Tensor:
